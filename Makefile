@@ -1,0 +1,71 @@
+# deep-ssfr: `make demo` runs the whole job on the small default; `make test` runs the tests.
+# Stage targets take CONFIG=configs/<file>.yaml SCENE=<name> FORCE=1.
+
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+CONFIG ?= configs/default.yaml
+SCENE ?=
+FORCE ?=
+FORMAT ?= ply
+STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--force)
+APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: setup test lint demo simulate dataset train render evaluate export bench cache-ls clean-cache
+
+setup: $(VENV)/.installed
+
+# Debian packages for headless GL (pyrender over EGL), installed when root and missing.
+$(VENV)/.apt-checked:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then echo "installing$$missing"; apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	  else echo "warning: missing Debian packages$$missing (needed for pyrender); install them as root"; fi; \
+	fi
+	@test -d $(VENV) || $(PYTHON) -m venv $(VENV)
+	@touch $@
+
+# torch first: the CPU build on this machine (a GPU user installs their own torch beforehand).
+$(VENV)/.installed: pyproject.toml $(VENV)/.apt-checked
+	@$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $@
+
+test: setup
+	$(PY) -m pytest -q
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+simulate: setup
+	$(PY) -m stages.simulate $(STAGE_ARGS)
+
+export: setup
+	$(PY) -m stages.simulate export $(STAGE_ARGS) --format $(FORMAT)
+
+dataset: setup
+	$(PY) -m stages.dataset $(STAGE_ARGS)
+
+train: setup
+	$(PY) -m stages.train $(STAGE_ARGS)
+
+render: setup
+	$(PY) -m stages.render $(STAGE_ARGS)
+
+evaluate: setup
+	$(PY) -m stages.evaluate $(STAGE_ARGS)
+
+demo: setup
+	$(PY) -m stages.demo $(STAGE_ARGS)
+
+bench: setup
+	$(PY) -m pip install -q -e '.[dev,bench]'
+	$(PY) benchmarks/bench_sim.py
+
+cache-ls: setup
+	$(PY) -m stages.cache ls --config $(CONFIG)
+
+clean-cache: setup
+	$(PY) -m stages.cache clean --config $(CONFIG)

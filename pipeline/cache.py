@@ -1,0 +1,155 @@
+"""Stage cache: content-keyed folders under ``data/<stage>/<name>-<key>/`` with a JSON manifest.
+
+A key hashes the stage's resolved config fields, its inputs' keys, the device and a hash of the
+source files the stage runs, so editing a kernel, changing a parameter or changing an upstream
+result each lead to a new entry, while untouched upstream entries stay hits. Every file is written
+to a temporary name and renamed, so a killed stage leaves only whole files; per-frame outputs let
+it resume, and the manifest (written last) marks the entry complete.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+MANIFEST = "manifest.json"
+_TMP_MARK = ".tmp-"
+
+
+class CacheError(RuntimeError):
+    """A cache file is missing or unreadable; the message names the file."""
+
+
+def _module_files(module: str) -> list[Path]:
+    spec = importlib.util.find_spec(module)
+    if spec is None or spec.origin is None:
+        raise ImportError(f"cannot locate module {module}")
+    origin = Path(spec.origin)
+    if spec.submodule_search_locations:
+        return sorted(p for p in origin.parent.rglob("*.py"))
+    return [origin]
+
+
+def code_version(modules: list[str] | tuple[str, ...]) -> str:
+    """Hash of the source of the given modules/packages (all ``.py`` files of a package)."""
+    digest = hashlib.sha256()
+    files = sorted({f for m in modules for f in _module_files(m)})
+    for f in files:
+        digest.update(f.name.encode())
+        digest.update(f.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def make_key(payload: dict[str, Any]) -> str:
+    """Stable short hash of a JSON-able payload."""
+    blob = json.dumps(payload, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+
+
+@contextmanager
+def atomic_path(target: Path) -> Iterator[Path]:
+    """Yield a temporary sibling path; on success rename it over ``target``, else delete it."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}")
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_json_atomic(path: Path, payload: Any) -> None:
+    """Write JSON through a temporary file and rename."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(payload, indent=2, sort_keys=True, default=str))
+
+
+def read_json(path: Path) -> Any:
+    """Read a JSON cache file, naming the file when it is corrupt."""
+    try:
+        return json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise CacheError(f"corrupt cache file {path}: {exc}; delete it or re-run with FORCE=1") from None
+
+
+@dataclass
+class CacheEntry:
+    """One stage output folder."""
+
+    root: Path
+    stage: str
+    name: str
+    key: str
+    meta: dict[str, Any]
+
+    @property
+    def dir(self) -> Path:
+        return self.root / self.stage / f"{self.name}-{self.key}"
+
+    def path(self, filename: str) -> Path:
+        """Path of a file inside the entry."""
+        return self.dir / filename
+
+    def is_complete(self) -> bool:
+        """True when the manifest has been written (the stage finished)."""
+        return (self.dir / MANIFEST).exists()
+
+    def manifest(self) -> dict[str, Any]:
+        """The manifest of a complete entry."""
+        return read_json(self.dir / MANIFEST)
+
+    def begin(self, force: bool = False) -> None:
+        """Create the folder (emptied first when forced) and drop temporaries of a killed run."""
+        if force and self.dir.exists():
+            shutil.rmtree(self.dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
+            stale.unlink()
+
+    def finish(self, files: list[str], timings: dict | None = None, **extra: Any) -> None:
+        """Write the manifest last: config, inputs, code version, timings and files."""
+        payload = {
+            "stage": self.stage,
+            "name": self.name,
+            "key": self.key,
+            **self.meta,
+            "files": sorted(files),
+            "timings": timings or {},
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            **extra,
+        }
+        write_json_atomic(self.dir / MANIFEST, payload)
+
+
+def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str],
+          modules: list[str] | tuple[str, ...], device: str) -> CacheEntry:
+    """The cache entry of ``stage`` for ``name`` given its config fields, inputs and code."""
+    code = code_version(modules)
+    meta = {"config": config, "inputs": inputs, "code_version": code, "device": device}
+    return CacheEntry(Path(root), stage, name, make_key(meta), meta)
+
+
+def list_entries(root: Path) -> list[dict[str, Any]]:
+    """Every entry under ``root`` with its size and state, for ``make cache-ls``."""
+    rows = []
+    root = Path(root)
+    if not root.exists():
+        return rows
+    for stage_dir in sorted(p for p in root.iterdir() if p.is_dir()):
+        for d in sorted(p for p in stage_dir.iterdir() if p.is_dir()):
+            size = sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
+            rows.append({"stage": stage_dir.name, "entry": d.name, "bytes": size,
+                         "complete": (d / MANIFEST).exists(),
+                         "files": sum(1 for f in d.rglob("*") if f.is_file())})
+    return rows

@@ -1,0 +1,572 @@
+"""Typed configuration: YAML (``safe_load``) into frozen dataclasses, one per stage.
+
+Every field carries its unit in the docstring below it. Loading rejects unknown keys, wrong types
+and out-of-range values with a :class:`ConfigError` naming the file and the key path, so a typo
+never silently falls back to a default. Relative paths inside a file resolve against that file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration problem, located by file and key path."""
+
+    def __init__(self, file: str | Path, key: str, message: str):
+        self.file, self.key, self.message = str(file), key, message
+        where = f"{file}: {key}" if key else f"{file}"
+        super().__init__(f"{where}: {message}")
+
+
+def _f(default: Any = dataclasses.MISSING, *, gt=None, ge=None, le=None, lt=None, factory=None):
+    """A dataclass field with optional numeric bounds checked at load time."""
+    meta = {k: v for k, v in dict(gt=gt, ge=ge, le=le, lt=lt).items() if v is not None}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+Vec3 = tuple[float, float, float]
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes (configs/scenes/<name>.yaml)
+
+
+@dataclass(frozen=True)
+class FluidShape:
+    """An initial block of fluid filled with particles on a cubic lattice."""
+
+    shape: Literal["box", "sphere"]
+    """Which primitive."""
+    lo: Vec3 = (0.0, 0.0, 0.0)
+    """Box: minimum corner (m)."""
+    hi: Vec3 = (0.0, 0.0, 0.0)
+    """Box: maximum corner (m)."""
+    center: Vec3 = (0.0, 0.0, 0.0)
+    """Sphere: centre (m)."""
+    radius: float = _f(0.0, ge=0.0)
+    """Sphere: radius (m)."""
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    """Initial velocity (m/s)."""
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A static solid the fluid flows around."""
+
+    shape: Literal["box", "sphere"]
+    """Which primitive."""
+    lo: Vec3 = (0.0, 0.0, 0.0)
+    """Box: minimum corner (m)."""
+    hi: Vec3 = (0.0, 0.0, 0.0)
+    """Box: maximum corner (m)."""
+    center: Vec3 = (0.0, 0.0, 0.0)
+    """Sphere: centre (m)."""
+    radius: float = _f(0.0, ge=0.0)
+    """Sphere: radius (m)."""
+
+
+@dataclass(frozen=True)
+class Emitter:
+    """A round nozzle injecting layers of particles with a velocity over a time window."""
+
+    position: Vec3
+    """Centre of the nozzle opening (m)."""
+    direction: Vec3
+    """Direction of the jet (normalised on use)."""
+    radius: float = _f(0.05, gt=0.0)
+    """Nozzle radius (m)."""
+    speed: float = _f(1.5, gt=0.0)
+    """Jet speed (m/s)."""
+    start: float = _f(0.0, ge=0.0)
+    """Time the nozzle opens (s)."""
+    end: float = _f(1.0, ge=0.0)
+    """Time the nozzle closes (s)."""
+
+
+@dataclass(frozen=True)
+class StaticCamera:
+    """A camera that stays put."""
+
+    eye: Vec3
+    """Camera position (m)."""
+    target: Vec3
+    """Point looked at (m)."""
+    fov_deg: float = _f(40.0, gt=0.0, lt=180.0)
+    """Vertical field of view (degrees)."""
+
+
+@dataclass(frozen=True)
+class OrbitCamera:
+    """A camera circling a vertical axis through ``target`` over the sequence."""
+
+    target: Vec3
+    """Point looked at and orbit centre (m)."""
+    distance: float = _f(2.5, gt=0.0)
+    """Horizontal distance from the axis (m)."""
+    height: float = 1.0
+    """Height of the eye above the target (m)."""
+    start_deg: float = 0.0
+    """Azimuth of the first frame, from +Z towards +X (degrees)."""
+    sweep_deg: float = 90.0
+    """Azimuth travelled over the whole sequence (degrees)."""
+    fov_deg: float = _f(40.0, gt=0.0, lt=180.0)
+    """Vertical field of view (degrees)."""
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """The two camera paths every scene defines (the paper renders both)."""
+
+    static: StaticCamera
+    """The fixed view."""
+    orbit: OrbitCamera
+    """The moving view."""
+
+
+@dataclass(frozen=True)
+class ParticleSource:
+    """An external particle sequence used instead of a simulation."""
+
+    pattern: str
+    """Glob of frame files (VTK, BGEO, PLY or XYZ), sorted by name; relative to the scene file."""
+    particle_radius: float = _f(gt=0.0)
+    """Particle radius of the sequence (its units)."""
+    fps: float = _f(30.0, gt=0.0)
+    """Frame rate of the sequence (frames/s)."""
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """One scene: a simulation set-up or an imported sequence, plus its cameras."""
+
+    name: str
+    """Scene name (also its cache and output folder name)."""
+    cameras: Cameras
+    """Static and orbiting camera."""
+    domain_lo: Vec3 = (0.0, 0.0, 0.0)
+    """Container minimum corner (m); y is up."""
+    domain_hi: Vec3 = (1.6, 1.2, 0.8)
+    """Container maximum corner (m)."""
+    fluid: tuple[FluidShape, ...] = ()
+    """Initial fluid bodies."""
+    obstacles: tuple[Obstacle, ...] = ()
+    """Static solids."""
+    emitters: tuple[Emitter, ...] = ()
+    """Nozzles."""
+    source: ParticleSource | None = None
+    """Set for an imported sequence: no simulation is run."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Stages
+
+
+@dataclass(frozen=True)
+class SimulateConfig:
+    """Position Based Fluids (Macklin & Mueller 2013) parameters."""
+
+    particle_radius: float = _f(0.0125, gt=0.0)
+    """Particle radius r (m); particles start on a lattice of spacing 2r."""
+    rest_density: float = _f(1000.0, gt=0.0)
+    """Rest density rho_0 (kg/m^3)."""
+    kernel_radius_factor: float = _f(4.0, gt=1.0)
+    """SPH support h as a multiple of r."""
+    frames: int = _f(100, ge=1)
+    """Frames to simulate."""
+    fps: float = _f(30.0, gt=0.0)
+    """Output frame rate (frames/s)."""
+    substeps: int = _f(4, ge=1)
+    """Solver steps per frame (time step = 1 / (fps * substeps))."""
+    iterations: int = _f(4, ge=1)
+    """Density-constraint iterations per step."""
+    gravity: Vec3 = (0.0, -9.81, 0.0)
+    """Gravity (m/s^2)."""
+    relaxation: float = _f(100.0, gt=0.0)
+    """Constraint-force-mixing epsilon in lambda's denominator (1/m^2 scale, as in the paper)."""
+    artificial_pressure_k: float = _f(1e-5, ge=0.0)
+    """Tensile-instability correction k (m^2, the scale of lambda; the paper's 0.1 explodes here,
+    1e-4 blew up a dam break at frame 26, 1e-5 and 3e-5 stayed stable)."""
+    artificial_pressure_n: int = _f(4, ge=1)
+    """Exponent n of the artificial pressure."""
+    artificial_pressure_dq: float = _f(0.2, gt=0.0, lt=1.0)
+    """Reference distance dq as a fraction of h."""
+    xsph_viscosity: float = _f(0.01, ge=0.0, le=1.0)
+    """XSPH velocity smoothing c (dimensionless)."""
+    vorticity_epsilon: float = _f(0.005, ge=0.0)
+    """Vorticity confinement strength epsilon (m/s): acceleration = epsilon (N x omega)."""
+    max_neighbours: int = _f(64, ge=8)
+    """Neighbour-list capacity per particle."""
+    threads: int = _f(0, ge=0)
+    """CPU threads for chunked kernel launches (0: one per core)."""
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Screen-space inputs and mesh targets (stage 2)."""
+
+    width: int = _f(256, ge=8)
+    """Image width (px)."""
+    height: int = _f(256, ge=8)
+    """Image height (px)."""
+    frame_stride: int = _f(2, ge=1)
+    """Use every n-th simulated frame."""
+    max_frames: int = _f(0, ge=0)
+    """Use at most this many frames per scene (0: all)."""
+    bilateral_sigma_px_scale: float = _f(1.0, gt=0.0)
+    """Bilateral spatial sigma as a multiple of the projected particle radius (px / px)."""
+    bilateral_range_radii: float = _f(1.0, gt=0.0)
+    """Bilateral range sigma in particle radii (depth units / r)."""
+    bilateral_max_radius_px: int = _f(24, ge=1)
+    """Cap on the bilateral kernel radius (px)."""
+    gaussian_sigma_px: float = _f(3.0, gt=0.0)
+    """Sigma of the naive Gaussian depth blur (px); also the 'blurred depth' input."""
+    nrf_delta_radii: float = _f(10.5, gt=0.0)
+    """Narrow-range delta in particle radii (Truong's reference value)."""
+    nrf_mu_radii: float = _f(1.0, gt=0.0)
+    """Narrow-range mu in particle radii."""
+    nrf_max_radius_px: int = _f(100, ge=1)
+    """Cap on the narrow-range kernel radius (px)."""
+    nrf_iterations: int = _f(3, ge=1)
+    """Alternating separable passes of the narrow-range filter."""
+    nrf_cleanup_radius_px: int = _f(2, ge=0)
+    """Radius of the final 2D clean-up pass (px)."""
+    aniso_smoothing: float = _f(0.9, ge=0.0, le=1.0)
+    """Laplacian smoothing lambda of the particle centres (Yu & Turk)."""
+    aniso_kr: float = _f(4.0, ge=1.0)
+    """Largest-to-smallest eigenvalue ratio cap k_r."""
+    aniso_ks: float = _f(1400.0, gt=0.0)
+    """Eigenvalue scale k_s."""
+    aniso_kn: float = _f(0.5, gt=0.0)
+    """Isotropic kernel scale for isolated particles k_n."""
+    aniso_neps: int = _f(25, ge=1)
+    """Neighbour count below which a particle stays a sphere (N_eps)."""
+    aniso_support_factor: float = _f(4.0, gt=0.0)
+    """Kernel support for the anisotropic density as a multiple of r (2h in Yu & Turk's terms)."""
+    iso_level: float = _f(0.5, gt=0.0)
+    """Iso value of the normalised density (1 is a particle's rest density)."""
+    grid_cells_per_radius: float = _f(1.5, gt=0.0)
+    """Density grid resolution (cells per particle radius)."""
+    max_grid_cells: int = _f(320, ge=16)
+    """Cap on the grid size per axis (cells); the paper used about 270."""
+    keep_meshes: bool = False
+    """Also write the target meshes (PLY) for inspection."""
+    validation_camera: Literal["orbit", "static", "none"] = "orbit"
+    """Camera path whose frames form each scene's validation split ('none': all train)."""
+    holdout_scenes: tuple[str, ...] = ()
+    """Scenes kept entirely out of training (their frames are all validation)."""
+    workers: int = _f(0, ge=0)
+    """Parallel frame workers (0: one per core)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """cGAN refiner of Choi et al. 2021 (stage 3)."""
+
+    epochs: int = _f(20, ge=1)
+    """Training epochs (the paper: 100)."""
+    batch_size: int = _f(8, ge=1)
+    """Images per batch."""
+    crop: int = _f(128, ge=16)
+    """Random crop side (px; a multiple of the generator stride)."""
+    crops_per_frame: int = _f(1, ge=1)
+    """Random crops drawn from each training frame per epoch."""
+    lr: float = _f(2e-4, gt=0.0)
+    """Initial Adam learning rate."""
+    beta1: float = _f(0.5, ge=0.0, lt=1.0)
+    """Adam beta1."""
+    lr_decay: float = _f(0.95, gt=0.0, le=1.0)
+    """Learning-rate factor applied after each epoch."""
+    lambda_content: float = _f(100.0, ge=0.0)
+    """Weight lambda_C of the content loss."""
+    lambda_normal: float = _f(10.0, ge=0.0)
+    """Weight lambda_N of the normal-constraint loss (0 disables it)."""
+    lambda_adversarial: float = _f(1.0, ge=0.0)
+    """Weight of the adversarial term."""
+    content_loss: Literal["l1", "l2"] = "l1"
+    """Content loss norm (the paper prefers L1)."""
+    auxiliary_features: bool = True
+    """Feed raw and blurred depth with the normal (5 input channels) or the normal alone (3)."""
+    train_scenes: tuple[str, ...] = ()
+    """Scenes to train on (empty: every configured scene not held out)."""
+    gen_base_channels: int = _f(24, ge=4)
+    """Generator channels at full resolution."""
+    gen_downsamples: int = _f(2, ge=0, le=5)
+    """Stride-2 stages in the generator (its stride is 2^this)."""
+    gen_res_blocks: int = _f(4, ge=0)
+    """Residual blocks at the bottleneck."""
+    disc_base_channels: int = _f(16, ge=4)
+    """Discriminator channels of its first convolution."""
+    disc_layers: int = _f(4, ge=1, le=7)
+    """Stride-2 convolutions in the discriminator before its fully connected layer."""
+    val_frames: int = _f(16, ge=1)
+    """Validation frames evaluated each epoch (spread over the held-out split)."""
+    mixed_precision: bool = True
+    """Use autocast on CUDA (ignored on the CPU)."""
+    threads: int = _f(0, ge=0)
+    """torch CPU threads (0: one per core)."""
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Deferred shading and outputs (stage 4)."""
+
+    width: int = _f(256, ge=8)
+    """Output width (px)."""
+    height: int = _f(256, ge=8)
+    """Output height (px)."""
+    camera: Literal["static", "orbit"] = "static"
+    """Camera path to render."""
+    method: Literal["refined", "gaussian", "bilateral", "nrf", "mesh"] = "refined"
+    """Normal-map source."""
+    weights: str = ""
+    """Generator checkpoint ('' : the trained one in the cache if any, else the shipped weights)."""
+    frame_stride: int = _f(1, ge=1)
+    """Render every n-th frame."""
+    max_frames: int = _f(0, ge=0)
+    """Render at most this many frames (0: all)."""
+    normal_threshold: float = _f(0.5, ge=0.0, le=1.0)
+    """Drop refined pixels whose normal is shorter than this (the paper's noise removal)."""
+    fluid_color: Vec3 = (0.55, 0.78, 0.95)
+    """Transmittance per metre of the fluid (linear RGB, Beer-Lambert)."""
+    absorption: float = _f(2.0, ge=0.0)
+    """Absorption strength multiplying -log(fluid_color) (1/m)."""
+    ior: float = _f(1.33, gt=1.0)
+    """Index of refraction (water 1.33)."""
+    refraction_strength: float = _f(0.08, ge=0.0)
+    """Screen-space refraction offset per metre of thickness (fraction of the image width)."""
+    specular: Literal["blinn", "ggx"] = "ggx"
+    """Specular model."""
+    roughness: float = _f(0.08, gt=0.0, le=1.0)
+    """GGX roughness (alpha = roughness^2) or Blinn exponent from it."""
+    light_dir: Vec3 = (0.4, 0.8, 0.45)
+    """Direction towards the sun (world space)."""
+    light_intensity: float = _f(3.0, ge=0.0)
+    """Sun radiance scale."""
+    environment: str = ""
+    """HDR lat-long EXR map for reflections ('' : procedural sky)."""
+    exposure: float = 0.0
+    """Exposure for previews (stops)."""
+    video_fps: float = _f(30.0, gt=0.0)
+    """Preview video frame rate."""
+    comparison: bool = True
+    """Also write the side-by-side comparison (bilateral | nrf | refined | mesh)."""
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """Held-out metrics (the evaluate stage)."""
+
+    methods: tuple[str, ...] = ("gaussian", "bilateral", "nrf", "refined")
+    """Methods compared with the mesh reference."""
+    max_frames: int = _f(0, ge=0)
+    """Frames per held-out sequence (0: all)."""
+    imported_scenes: tuple[str, ...] = ()
+    """Imported particle scenes also evaluated."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole pipeline configuration (configs/*.yaml)."""
+
+    scenes: tuple[str, ...]
+    """Scene names; each is configs/scenes/<name>.yaml (or under scene_dir)."""
+    seed: int = 0
+    """Seed of every random choice (simulation jitter, crops, initialisation)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Compute device ('auto': CUDA when Warp and torch see one); DEEP_SSFR_DEVICE overrides."""
+    scene_dir: str = "scenes"
+    """Folder of scene files, relative to this config file."""
+    data_dir: str = "../data"
+    """Cache root, relative to this config file."""
+    simulate: SimulateConfig = _f(factory=SimulateConfig)
+    """Stage 1."""
+    dataset: DatasetConfig = _f(factory=DatasetConfig)
+    """Stage 2."""
+    train: TrainConfig = _f(factory=TrainConfig)
+    """Stage 3."""
+    render: RenderConfig = _f(factory=RenderConfig)
+    """Stage 4."""
+    evaluate: EvaluateConfig = _f(factory=EvaluateConfig)
+    """Metrics."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+
+
+def _check_bounds(value: float, meta: dict, file, key: str) -> None:
+    for op, bound in meta.items():
+        ok = {"gt": value > bound, "ge": value >= bound, "lt": value < bound, "le": value <= bound}[op]
+        if not ok:
+            sym = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}[op]
+            raise ConfigError(file, key, f"must be {sym} {bound}, got {value}")
+
+
+def _convert(tp: Any, value: Any, file, key: str) -> Any:
+    """Convert a YAML value to the annotated type, or raise naming the key."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _convert(inner[0], value, file, key)
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(file, key, f"must be one of {list(args)}, got {value!r}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(file, key, f"must be a list, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, file, f"{key}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(file, key, f"must have {len(args)} elements, got {len(value)}")
+        return tuple(_convert(a, v, file, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value, file, key)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(file, key, f"must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(file, key, f"must be an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(file, key, f"must be a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(file, key, f"must be a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config type {tp}")
+
+
+def from_dict(cls: type, data: Any, file: str | Path = "<dict>", prefix: str = ""):
+    """Build dataclass ``cls`` from a mapping, rejecting unknown keys and checking types/bounds."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(file, prefix, f"must be a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for k in data:
+        if k not in fields:
+            raise ConfigError(file, f"{prefix}.{k}" if prefix else str(k),
+                              f"unknown key (known: {', '.join(sorted(fields))})")
+    kwargs = {}
+    for name, f in fields.items():
+        key = f"{prefix}.{name}" if prefix else name
+        if name not in data:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ConfigError(file, key, "missing required key")
+            continue
+        value = _convert(hints[name], data[name], file, key)
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            _check_bounds(value, dict(f.metadata), file, key)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def to_dict(obj: Any) -> Any:
+    """Plain JSON/YAML-ready values of a config dataclass (tuples become lists)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, tuple | list):
+        return [to_dict(v) for v in obj]
+    return obj
+
+
+def read_yaml(path: Path) -> Any:
+    """``yaml.safe_load`` a file, turning IO and syntax errors into ConfigError."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return yaml.safe_load(fh)
+    except FileNotFoundError:
+        raise ConfigError(path, "", "file not found") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(path, "", f"invalid YAML: {exc}".replace("\n", " ")) from None
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """A loaded pipeline config with its scenes and where it came from."""
+
+    config: Config
+    scenes: dict[str, SceneConfig]
+    path: Path
+    data_dir: Path
+
+    def scene(self, name: str) -> SceneConfig:
+        """The named scene, or a ConfigError listing the configured ones."""
+        if name not in self.scenes:
+            raise ConfigError(self.path, "scenes", f"scene {name!r} is not configured "
+                              f"(configured: {', '.join(self.scenes)})")
+        return self.scenes[name]
+
+
+def _deep_update(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _deep_update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_scene(path: Path) -> SceneConfig:
+    """Load one scene file; its source pattern is made absolute against the file's folder."""
+    scene = from_dict(SceneConfig, read_yaml(path), path)
+    if scene.source is not None:
+        pattern = Path(scene.source.pattern)
+        if not pattern.is_absolute():
+            pattern = (path.parent / pattern).resolve()
+        scene = dataclasses.replace(scene, source=dataclasses.replace(scene.source, pattern=str(pattern)))
+    if scene.source is None and not scene.fluid and not scene.emitters:
+        raise ConfigError(path, "fluid", "a simulated scene needs fluid shapes or emitters")
+    return scene
+
+
+def load(path: str | Path, overrides: dict | None = None, only_scene: str | None = None) -> Loaded:
+    """Load a pipeline config and its scene files.
+
+    ``overrides`` is a nested mapping applied over the file (tests shrink configs this way);
+    ``only_scene`` restricts the run to one configured scene.
+    """
+    path = Path(path)
+    raw = read_yaml(path) or {}
+    if not isinstance(raw, dict):
+        raise ConfigError(path, "", "top level must be a mapping")
+    if overrides:
+        raw = _deep_update(raw, overrides)
+    config = from_dict(Config, raw, path)
+    scene_dir = (path.parent / config.scene_dir).resolve()
+    names = config.scenes
+    if only_scene:
+        if only_scene not in names:
+            raise ConfigError(path, "scenes", f"scene {only_scene!r} is not configured "
+                              f"(configured: {', '.join(names)})")
+        names = (only_scene,)
+    scenes = {}
+    for name in names:
+        scene_path = scene_dir / f"{name}.yaml"
+        if not scene_path.exists():
+            raise ConfigError(path, "scenes", f"unknown scene {name!r}: no file {scene_path}")
+        scene = load_scene(scene_path)
+        if scene.name != name:
+            raise ConfigError(scene_path, "name", f"is {scene.name!r} but the file is named {name!r}")
+        scenes[name] = scene
+    for held in config.dataset.holdout_scenes:
+        if held not in config.scenes:
+            raise ConfigError(path, "dataset.holdout_scenes", f"{held!r} is not in scenes")
+    return Loaded(config, scenes, path, (path.parent / config.data_dir).resolve())

@@ -1,0 +1,41 @@
+"""One place that chooses the compute device for Warp and torch."""
+
+from __future__ import annotations
+
+import os
+
+ENV_VAR = "DEEP_SSFR_DEVICE"
+
+
+def choose_device(requested: str = "auto") -> str:
+    """Return ``"cuda"`` or ``"cpu"``.
+
+    Precedence: the ``DEEP_SSFR_DEVICE`` environment variable, then ``requested`` from the config;
+    ``"auto"`` picks CUDA only when both Warp and torch can use it, so the two libraries always
+    share a device.
+    """
+    choice = os.environ.get(ENV_VAR, requested) or "auto"
+    if choice not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"{ENV_VAR} must be auto, cpu or cuda, got {choice!r}")
+    if choice == "cpu":
+        return "cpu"
+    cuda_ok = _cuda_available()
+    if choice == "cuda" and not cuda_ok:
+        raise RuntimeError("device 'cuda' requested but Warp and torch do not both see a CUDA GPU")
+    return "cuda" if cuda_ok else "cpu"
+
+
+def _cuda_available() -> bool:
+    try:
+        import torch
+        import warp as wp
+
+        wp.init()
+        return bool(torch.cuda.is_available() and wp.is_cuda_available())
+    except Exception:
+        return False
+
+
+def warp_device(device: str) -> str:
+    """Warp's name for the device."""
+    return "cuda:0" if device == "cuda" else "cpu"

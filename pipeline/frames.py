@@ -1,0 +1,84 @@
+"""Cached particle frames (``frame_0001.npz``) and sequence metadata, shared by every stage."""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.cache import CacheError, atomic_path, read_json, write_json_atomic
+
+SEQUENCE_FILE = "sequence.json"
+
+
+def frame_name(index: int, ext: str = "npz") -> str:
+    """1-based, zero-padded frame file name (``frame_0001.npz``)."""
+    return f"frame_{index:04d}.{ext}"
+
+
+@dataclass(frozen=True)
+class SequenceInfo:
+    """What downstream stages need to know about a particle sequence."""
+
+    scene: str
+    frames: int
+    particle_radius: float
+    rest_density: float
+    fps: float
+    domain_lo: tuple[float, float, float]
+    domain_hi: tuple[float, float, float]
+    source: str
+
+
+def save_frame(path: Path, positions: np.ndarray, velocities: np.ndarray | None) -> None:
+    """Write positions (and velocities) as float32 through a temporary file."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        arrays = {"positions": np.asarray(positions, np.float32)}
+        if velocities is not None:
+            arrays["velocities"] = np.asarray(velocities, np.float32)
+        np.savez(fh, **arrays)
+
+
+def load_frame(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Positions and velocities of a cached frame; a damaged file raises CacheError naming it."""
+    try:
+        with np.load(path) as z:
+            x = z["positions"]
+            v = z["velocities"] if "velocities" in z.files else None
+    except FileNotFoundError:
+        raise CacheError(f"missing cache file {path}; re-run the simulate stage") from None
+    except (zipfile.BadZipFile, ValueError, KeyError, OSError, EOFError) as exc:
+        raise CacheError(f"corrupt cache file {path} ({exc}); delete it or re-run with FORCE=1") from None
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise CacheError(f"corrupt cache file {path}: positions have shape {x.shape}")
+    return x, v
+
+
+def write_sequence_info(folder: Path, info: SequenceInfo) -> None:
+    """Write ``sequence.json``."""
+    write_json_atomic(Path(folder) / SEQUENCE_FILE, asdict(info))
+
+
+def read_sequence_info(folder: Path) -> SequenceInfo:
+    """Read ``sequence.json`` of a simulate cache entry."""
+    data = read_json(Path(folder) / SEQUENCE_FILE)
+    try:
+        data["domain_lo"] = tuple(data["domain_lo"])
+        data["domain_hi"] = tuple(data["domain_hi"])
+        return SequenceInfo(**data)
+    except (TypeError, KeyError) as exc:
+        raise CacheError(f"corrupt cache file {Path(folder) / SEQUENCE_FILE}: {exc}") from None
+
+
+def completed_frames(folder: Path, total: int) -> int:
+    """Number of leading frames 1..k already written (a killed run resumes after them)."""
+    k = 0
+    while k < total and (Path(folder) / frame_name(k + 1)).exists():
+        k += 1
+    return k
+
+
+__all__ = ["SequenceInfo", "frame_name", "save_frame", "load_frame", "write_sequence_info",
+           "read_sequence_info", "completed_frames"]

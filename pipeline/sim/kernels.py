@@ -1,0 +1,393 @@
+"""Warp kernels of Position Based Fluids (Macklin & Mueller, "Position Based Fluids", TOG 2013).
+
+Density constraint C_i = rho_i / rho_0 - 1 (unilateral: only compression is corrected, which keeps
+free surfaces from clumping) with poly6 density and spiky gradients, the artificial-pressure term
+s_corr against tensile instability, vorticity confinement and XSPH viscosity. Masses enter through
+the particle volume V = m / rho_0 so every constant keeps SI units.
+
+Every kernel takes ``offset`` first: the host launches chunks of the index range from a thread
+pool (Warp releases the GIL and runs a CPU launch on one core). Each thread writes only its own
+particle's outputs, so chunks never race. Kernels are kept apart from the driver so that editing
+the driver does not recompile them.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def poly6(r2: float, h2: float, coef: float) -> float:
+    """Poly6 kernel W(r) = 315 / (64 pi h^9) (h^2 - r^2)^3, with coef = 315 / (64 pi h^9)."""
+    if r2 >= h2:
+        return 0.0
+    d = h2 - r2
+    return coef * d * d * d
+
+
+@wp.func
+def spiky_grad(r: wp.vec3, h: float, coef: float) -> wp.vec3:
+    """Gradient of the spiky kernel, coef = -45 / (pi h^6); zero outside h and at r = 0."""
+    rl = wp.length(r)
+    if rl >= h or rl < 1.0e-9:
+        return wp.vec3(0.0, 0.0, 0.0)
+    d = h - rl
+    return r * (coef * d * d / rl)
+
+
+@wp.func
+def collide(
+    p: wp.vec3,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """Project a particle centre out of the obstacles and into the container."""
+    for s in range(spheres.shape[0]):
+        sp = spheres[s]
+        c = wp.vec3(sp[0], sp[1], sp[2])
+        rr = sp[3] + radius
+        d = p - c
+        dl = wp.length(d)
+        if dl < rr:
+            if dl > 1.0e-9:
+                p = c + d * (rr / dl)
+            else:
+                p = c + wp.vec3(0.0, rr, 0.0)
+    for b in range(box_lo.shape[0]):
+        bl = box_lo[b] - wp.vec3(radius, radius, radius)
+        bh = box_hi[b] + wp.vec3(radius, radius, radius)
+        if p[0] > bl[0] and p[0] < bh[0] and p[1] > bl[1] and p[1] < bh[1] and p[2] > bl[2] and p[2] < bh[2]:
+            # push out through the nearest face
+            best = p[0] - bl[0]
+            axis = int(0)
+            target = bl[0]
+            if bh[0] - p[0] < best:
+                best = bh[0] - p[0]
+                target = bh[0]
+            for a in range(1, 3):
+                if p[a] - bl[a] < best:
+                    best = p[a] - bl[a]
+                    axis = a
+                    target = bl[a]
+                if bh[a] - p[a] < best:
+                    best = bh[a] - p[a]
+                    axis = a
+                    target = bh[a]
+            p[axis] = target
+    return wp.vec3(
+        wp.clamp(p[0], lo[0] + radius, hi[0] - radius),
+        wp.clamp(p[1], lo[1] + radius, hi[1] - radius),
+        wp.clamp(p[2], lo[2] + radius, hi[2] - radius),
+    )
+
+
+@wp.kernel
+def predict_positions(
+    offset: int,
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    dt: float,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+):
+    """Explicit step under gravity: v* = v + dt g, x* = x + dt v*, projected out of solids."""
+    i = wp.tid() + offset
+    v = particle_v[i] + gravity * dt
+    v_out[i] = v
+    x_pred[i] = collide(particle_x[i] + v * dt, lo, hi, radius, spheres, box_lo, box_hi)
+
+
+@wp.func
+def cell_coord(p: wp.vec3, lo: wp.vec3, inv_cell: float, dims: wp.vec3i) -> wp.vec3i:
+    """Integer cell of a point in the dense grid over the container (clamped to the grid)."""
+    q = (p - lo) * inv_cell
+    return wp.vec3i(
+        wp.clamp(int(wp.floor(q[0])), 0, dims[0] - 1),
+        wp.clamp(int(wp.floor(q[1])), 0, dims[1] - 1),
+        wp.clamp(int(wp.floor(q[2])), 0, dims[2] - 1),
+    )
+
+
+@wp.func
+def cell_linear(c: wp.vec3i, dims: wp.vec3i) -> int:
+    """Linear cell index, x fastest, so the three cells of a row are contiguous."""
+    return (c[2] * dims[1] + c[1]) * dims[0] + c[0]
+
+
+@wp.kernel
+def compute_cell_keys(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    lo: wp.vec3,
+    inv_cell: float,
+    dims: wp.vec3i,
+    keys: wp.array(dtype=int),
+    values: wp.array(dtype=int),
+):
+    """Sort keys (linear cell) and values (particle index) for the stable radix sort."""
+    i = wp.tid() + offset
+    keys[i] = cell_linear(cell_coord(x_pred[i], lo, inv_cell, dims), dims)
+    values[i] = i
+
+
+@wp.kernel
+def find_cell_starts(offset: int, sorted_keys: wp.array(dtype=int), n: int, cell_start: wp.array(dtype=int)):
+    """cell_start[c] = first sorted index whose cell is >= c (binary search; cell_start[cells] = n)."""
+    c = wp.tid() + offset
+    a = int(0)
+    b = n
+    while a < b:
+        m = (a + b) // 2
+        if sorted_keys[m] < c:
+            a = m + 1
+        else:
+            b = m
+    cell_start[c] = a
+
+
+@wp.kernel
+def gather_vec3(offset: int, order: wp.array(dtype=int), src: wp.array(dtype=wp.vec3),
+                dst: wp.array(dtype=wp.vec3)):
+    """dst[k] = src[order[k]]: reorder particles so neighbours are close in memory."""
+    k = wp.tid() + offset
+    dst[k] = src[order[k]]
+
+
+@wp.kernel
+def gather_int(offset: int, order: wp.array(dtype=int), src: wp.array(dtype=int), dst: wp.array(dtype=int)):
+    """dst[k] = src[order[k]] for integer attributes (particle ids)."""
+    k = wp.tid() + offset
+    dst[k] = src[order[k]]
+
+
+@wp.kernel
+def find_neighbours(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    cell_start: wp.array(dtype=int),
+    lo: wp.vec3,
+    inv_cell: float,
+    dims: wp.vec3i,
+    reach: int,
+    h: float,
+    max_neighbours: int,
+    neighbour_count: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+):
+    """Neighbour list within h, built once per step and reused by every solver loop.
+
+    Particles are sorted by cell (x fastest), so the cells of each row around a particle form one
+    contiguous index range: (2 reach + 1)^2 range scans instead of hash lookups per cell.
+    """
+    k = wp.tid() + offset
+    xk = x_pred[k]
+    c = cell_coord(xk, lo, inv_cell, dims)
+    x0 = wp.max(c[0] - reach, 0)
+    x1 = wp.min(c[0] + reach, dims[0] - 1)
+    h2 = h * h
+    count = int(0)
+    for dz in range(-reach, reach + 1):
+        z = c[2] + dz
+        if z >= 0 and z < dims[2]:
+            for dy in range(-reach, reach + 1):
+                y = c[1] + dy
+                if y >= 0 and y < dims[1]:
+                    row = (z * dims[1] + y) * dims[0]
+                    for j in range(cell_start[row + x0], cell_start[row + x1 + 1]):
+                        if j != k and wp.length_sq(x_pred[j] - xk) < h2:
+                            if count < max_neighbours:
+                                neighbour_index[k * max_neighbours + count] = j
+                                count += 1
+    neighbour_count[k] = count
+
+
+@wp.kernel
+def compute_lambda(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    neighbour_count: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    max_neighbours: int,
+    h: float,
+    poly6_coef: float,
+    spiky_coef: float,
+    mass: float,
+    rest_density: float,
+    relaxation: float,
+    corr_k: float,
+    corr_w_dq: float,
+    corr_n: int,
+    particle_rho: wp.array(dtype=float),
+    particle_lambda: wp.array(dtype=float),
+    pair_grad: wp.array(dtype=wp.vec3),
+    pair_corr: wp.array(dtype=float),
+):
+    """Density rho_i = sum m W and the constraint multiplier lambda_i = -C_i / (sum |grad C|^2 + eps).
+
+    Positions do not move between this pass and the correction pass, so each pair's scaled
+    kernel gradient and artificial pressure s_corr = -k (W / W(dq))^n are stored here and read back
+    there instead of being recomputed (the correction pass then needs no square root).
+    """
+    i = wp.tid() + offset
+    xi = x_pred[i]
+    h2 = h * h
+    rho = mass * poly6(0.0, h2, poly6_coef)
+    vol = mass / rest_density
+    grad_i = wp.vec3(0.0, 0.0, 0.0)
+    sum_sq = float(0.0)
+    n = neighbour_count[i]
+    for s in range(n):
+        j = neighbour_index[i * max_neighbours + s]
+        r = xi - x_pred[j]
+        w = poly6(wp.length_sq(r), h2, poly6_coef)
+        rho += mass * w
+        g = spiky_grad(r, h, spiky_coef) * vol
+        grad_i += g
+        sum_sq += wp.dot(g, g)
+        pair_grad[i * max_neighbours + s] = g
+        scorr = float(0.0)
+        if corr_k > 0.0:
+            ratio = w / corr_w_dq
+            if corr_n == 4:
+                ratio2 = ratio * ratio
+                scorr = -corr_k * ratio2 * ratio2
+            else:
+                scorr = float(1.0)
+                for _e in range(corr_n):
+                    scorr = scorr * ratio
+                scorr = -corr_k * scorr
+        pair_corr[i * max_neighbours + s] = scorr
+    sum_sq += wp.dot(grad_i, grad_i)
+    c = wp.max(rho / rest_density - 1.0, 0.0)
+    particle_rho[i] = rho
+    particle_lambda[i] = -c / (sum_sq + relaxation)
+
+
+@wp.kernel
+def apply_density_correction(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_lambda: wp.array(dtype=float),
+    neighbour_count: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    max_neighbours: int,
+    pair_grad: wp.array(dtype=wp.vec3),
+    pair_corr: wp.array(dtype=float),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """Position update dp_i = sum_j (lambda_i + lambda_j + s_corr) V grad W_ij, then collisions."""
+    i = wp.tid() + offset
+    li = particle_lambda[i]
+    dp = wp.vec3(0.0, 0.0, 0.0)
+    for s in range(neighbour_count[i]):
+        p = i * max_neighbours + s
+        dp += pair_grad[p] * (li + particle_lambda[neighbour_index[p]] + pair_corr[p])
+    x_out[i] = collide(x_pred[i] + dp, lo, hi, radius, spheres, box_lo, box_hi)
+
+
+@wp.kernel
+def update_velocity(
+    offset: int,
+    particle_x: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    inv_dt: float,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """v = (x* - x) / dt."""
+    i = wp.tid() + offset
+    v_out[i] = (x_pred[i] - particle_x[i]) * inv_dt
+
+
+@wp.kernel
+def compute_vorticity(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    neighbour_count: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    max_neighbours: int,
+    h: float,
+    spiky_coef: float,
+    vol: float,
+    omega_out: wp.array(dtype=wp.vec3),
+):
+    """Vorticity omega_i = sum_j V (v_j - v_i) x grad_j W_ij (1/s)."""
+    i = wp.tid() + offset
+    xi = x_pred[i]
+    vi = particle_v[i]
+    w = wp.vec3(0.0, 0.0, 0.0)
+    for s in range(neighbour_count[i]):
+        j = neighbour_index[i * max_neighbours + s]
+        # grad with respect to p_j of W(p_i - p_j) is minus the gradient with respect to p_i
+        w += wp.cross(particle_v[j] - vi, -spiky_grad(xi - x_pred[j], h, spiky_coef)) * vol
+    omega_out[i] = w
+
+
+@wp.kernel
+def apply_vorticity_and_viscosity(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    particle_rho: wp.array(dtype=float),
+    neighbour_count: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    max_neighbours: int,
+    h: float,
+    poly6_coef: float,
+    spiky_coef: float,
+    mass: float,
+    vorticity_eps: float,
+    xsph_c: float,
+    dt: float,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Vorticity confinement f = eps (N x omega), N = grad|omega| / |grad|omega||, then XSPH."""
+    i = wp.tid() + offset
+    xi = x_pred[i]
+    vi = particle_v[i]
+    wi = particle_omega[i]
+    wi_len = wp.length(wi)
+    h2 = h * h
+    eta = wp.vec3(0.0, 0.0, 0.0)
+    visc = wp.vec3(0.0, 0.0, 0.0)
+    for s in range(neighbour_count[i]):
+        j = neighbour_index[i * max_neighbours + s]
+        r = xi - x_pred[j]
+        volj = mass / particle_rho[j]
+        eta += spiky_grad(r, h, spiky_coef) * ((wp.length(particle_omega[j]) - wi_len) * volj)
+        visc += (particle_v[j] - vi) * (poly6(wp.length_sq(r), h2, poly6_coef) * volj)
+    v = vi + visc * xsph_c
+    el = wp.length(eta)
+    if el > 1.0e-9 and vorticity_eps > 0.0:
+        v += wp.cross(eta / el, wi) * (vorticity_eps * dt)
+    v_out[i] = v
+
+
+@wp.kernel
+def scatter_by_id(
+    offset: int,
+    particle_id: wp.array(dtype=int),
+    src: wp.array(dtype=wp.vec3),
+    dst: wp.array(dtype=wp.vec3),
+):
+    """dst[id[k]] = src[k]: return to stable particle order for output."""
+    k = wp.tid() + offset
+    dst[particle_id[k]] = src[k]

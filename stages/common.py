@@ -1,0 +1,92 @@
+"""What every stage entry point shares: arguments, logging, error boundary, device."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.cache import CacheError
+from pipeline.config import ConfigError, Loaded, load
+from pipeline.device import choose_device
+
+log = logging.getLogger("deep_ssfr")
+
+
+class StageError(RuntimeError):
+    """A stage cannot go on; the message says what failed and what to do."""
+
+
+@dataclass
+class Run:
+    """A stage invocation: the loaded config, the device and the flags."""
+
+    loaded: Loaded
+    device: str
+    force: bool
+
+    @property
+    def config(self):
+        return self.loaded.config
+
+    @property
+    def data_dir(self) -> Path:
+        return self.loaded.data_dir
+
+
+def parse_args(stage: str, argv: list[str] | None = None, extra: Callable | None = None) -> argparse.Namespace:
+    """``--config``, ``--scene``, ``--force`` plus stage-specific flags."""
+    parser = argparse.ArgumentParser(prog=f"make {stage}", description=f"deep-ssfr {stage} stage")
+    parser.add_argument("--config", default="configs/default.yaml", help="pipeline YAML")
+    parser.add_argument("--scene", default="", help="run only this configured scene")
+    parser.add_argument("--force", action="store_true", help="recompute even if cached")
+    if extra:
+        extra(parser)
+    return parser.parse_args(argv)
+
+
+def make_run(args: argparse.Namespace, overrides: dict | None = None) -> Run:
+    """Load config and choose the device."""
+    loaded = load(args.config, overrides=overrides, only_scene=args.scene or None)
+    return Run(loaded, choose_device(loaded.config.device), bool(args.force))
+
+
+def setup_logging() -> None:
+    """One concise line per event on stderr."""
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=os.environ.get("DEEP_SSFR_LOG", "INFO"),
+                            format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    for noisy in ("PIL", "matplotlib", "OpenGL", "trimesh"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def quiet_warp() -> None:
+    """Keep Warp's banner and per-module load lines out of stage logs."""
+    import warp as wp
+
+    wp.config.quiet = True
+
+
+def stage_main(stage: str, body: Callable[[list[str] | None], None], argv: list[str] | None = None) -> int:
+    """Run a stage body, turning known failures into a one-line message and an exit code.
+
+    Exit 2 for configuration errors (nothing written), 1 for input, cache or runtime failures.
+    """
+    setup_logging()
+    quiet_warp()
+    try:
+        body(argv)
+    except ConfigError as exc:
+        print(f"{stage}: config error: {exc}", file=sys.stderr)
+        return 2
+    except (StageError, CacheError, ValueError, RuntimeError, FileNotFoundError) as exc:
+        print(f"{stage}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{stage}: interrupted; finished frames are kept and a re-run resumes", file=sys.stderr)
+        return 130
+    return 0
