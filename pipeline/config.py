@@ -204,6 +204,8 @@ class SimulateConfig:
     """XSPH velocity smoothing c (dimensionless)."""
     vorticity_epsilon: float = _f(0.005, ge=0.0)
     """Vorticity confinement strength epsilon (m/s): acceleration = epsilon (N x omega)."""
+    max_speed: float = _f(50.0, gt=0.0)
+    """Speed above which the run is declared blown up (m/s)."""
     max_neighbours: int = _f(64, ge=8)
     """Neighbour-list capacity per particle."""
     threads: int = _f(0, ge=0)

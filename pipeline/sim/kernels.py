@@ -36,7 +36,7 @@ def spiky_grad(r: wp.vec3, h: float, coef: float) -> wp.vec3:
 
 
 @wp.func
-def collide(
+def collide_once(
     p: wp.vec3,
     lo: wp.vec3,
     hi: wp.vec3,
@@ -45,7 +45,7 @@ def collide(
     box_lo: wp.array(dtype=wp.vec3),
     box_hi: wp.array(dtype=wp.vec3),
 ) -> wp.vec3:
-    """Project a particle centre out of the obstacles and into the container."""
+    """One round: push out of each obstacle, then clamp into the container."""
     for s in range(spheres.shape[0]):
         sp = spheres[s]
         c = wp.vec3(sp[0], sp[1], sp[2])
@@ -83,6 +83,25 @@ def collide(
         wp.clamp(p[1], lo[1] + radius, hi[1] - radius),
         wp.clamp(p[2], lo[2] + radius, hi[2] - radius),
     )
+
+
+@wp.func
+def collide(
+    p: wp.vec3,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+) -> wp.vec3:
+    """Project a particle centre out of the obstacles and into the container.
+
+    Two rounds, because where an obstacle meets a wall (a sphere resting on the floor) the wall
+    clamp of the first round can push a particle back into the obstacle.
+    """
+    q = collide_once(p, lo, hi, radius, spheres, box_lo, box_hi)
+    return collide_once(q, lo, hi, radius, spheres, box_lo, box_hi)
 
 
 @wp.kernel
@@ -132,24 +151,34 @@ def compute_cell_keys(
     lo: wp.vec3,
     inv_cell: float,
     dims: wp.vec3i,
-    keys: wp.array(dtype=int),
+    particle_id: wp.array(dtype=int),
+    capacity: wp.int64,
+    keys: wp.array(dtype=wp.int64),
     values: wp.array(dtype=int),
 ):
-    """Sort keys (linear cell) and values (particle index) for the stable radix sort."""
+    """Sort keys cell * capacity + id and values (particle index) for the radix sort.
+
+    The id makes every key unique, so the order (and with it every floating-point sum over
+    neighbours) depends only on positions and ids, not on the order particles sit in memory:
+    a run resumed from a saved frame is bit-identical to an uninterrupted one.
+    """
     i = wp.tid() + offset
-    keys[i] = cell_linear(cell_coord(x_pred[i], lo, inv_cell, dims), dims)
+    cell = cell_linear(cell_coord(x_pred[i], lo, inv_cell, dims), dims)
+    keys[i] = wp.int64(cell) * capacity + wp.int64(particle_id[i])
     values[i] = i
 
 
 @wp.kernel
-def find_cell_starts(offset: int, sorted_keys: wp.array(dtype=int), n: int, cell_start: wp.array(dtype=int)):
+def find_cell_starts(offset: int, sorted_keys: wp.array(dtype=wp.int64), n: int, capacity: wp.int64,
+                     cell_start: wp.array(dtype=int)):
     """cell_start[c] = first sorted index whose cell is >= c (binary search; cell_start[cells] = n)."""
     c = wp.tid() + offset
+    first_key = wp.int64(c) * capacity
     a = int(0)
     b = n
     while a < b:
         m = (a + b) // 2
-        if sorted_keys[m] < c:
+        if sorted_keys[m] < first_key:
             a = m + 1
         else:
             b = m

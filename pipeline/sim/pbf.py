@@ -86,7 +86,7 @@ class PBFSolver:
         self.particle_rho = wp.zeros(cap, dtype=float, device=dev)
         self.particle_lambda = wp.zeros(cap, dtype=float, device=dev)
         # radix sort needs room for 2 x count
-        self.cell_keys = wp.zeros(2 * cap, dtype=int, device=dev)
+        self.cell_keys = wp.zeros(2 * cap, dtype=wp.int64, device=dev)
         self.order = wp.zeros(2 * cap, dtype=int, device=dev)
         self.neighbour_count = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
@@ -99,6 +99,7 @@ class PBFSolver:
         self.grid_dims = wp.vec3i(*dims)
         self.num_cells = int(np.prod(dims))
         self.cell_start = wp.zeros(self.num_cells + 1, dtype=int, device=dev)
+        self.key_bits = int(math.ceil(math.log2(max(2, (self.num_cells + 1) * cap))))
 
     def _upload_obstacles(self) -> None:
         spheres = [(*o.center, o.radius) for o in self.scene.obstacles if o.shape == "sphere"]
@@ -156,9 +157,10 @@ class PBFSolver:
 
         # Sort into cell order (stable radix sort), then one neighbour list for all iterations.
         grid = [self.lo, 1.0 / self.cell_width, self.grid_dims]
-        launch(K.compute_cell_keys, n, [self.x_pred, *grid, self.cell_keys, self.order])
-        wp.utils.radix_sort_pairs(self.cell_keys, self.order, n)
-        launch(K.find_cell_starts, self.num_cells + 1, [self.cell_keys, n, self.cell_start])
+        cap = wp.int64(self.capacity)
+        launch(K.compute_cell_keys, n, [self.x_pred, *grid, self.particle_id, cap, self.cell_keys, self.order])
+        wp.utils.radix_sort_pairs(self.cell_keys, self.order, n, end_bit=self.key_bits)
+        launch(K.find_cell_starts, self.num_cells + 1, [self.cell_keys, n, cap, self.cell_start])
         launch(K.gather_vec3, n, [self.order, self.particle_x, self.x_sorted])
         launch(K.gather_vec3, n, [self.order, self.x_pred, self.x_pred_other])
         launch(K.gather_vec3, n, [self.order, self.v_tmp, self.particle_v])
@@ -198,9 +200,13 @@ class PBFSolver:
         n = self.n
         rho = self.particle_rho.numpy()[:n]
         x = self.particle_x.numpy()[:n]
+        v = self.particle_v.numpy()[:n]
         ratio = float(rho.max() / self.params.rest_density) if n else 0.0
-        if not np.isfinite(x).all() or not np.isfinite(rho).all():
-            raise SimulationError(f"blow-up at frame {frame}: non-finite positions or densities")
+        if not (np.isfinite(x).all() and np.isfinite(v).all() and np.isfinite(rho).all()):
+            raise SimulationError(f"blow-up at frame {frame}: non-finite positions, velocities or densities")
+        speed = float(np.sqrt((v * v).sum(1)).max()) if n else 0.0
+        if speed > self.params.max_speed:
+            raise SimulationError(f"blow-up at frame {frame}: a particle moves at {speed:.0f} m/s")
         lo = np.asarray(self.scene.domain_lo) - 1e-3
         hi = np.asarray(self.scene.domain_hi) + 1e-3
         if ((x < lo) | (x > hi)).any():

@@ -1,0 +1,53 @@
+"""Bad configs give a one-line error naming the file and key, exit code 2, and write nothing."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from pipeline.config import ConfigError, load
+from stages import simulate
+from stages.common import stage_main
+
+
+def _run(path, capsys):
+    code = stage_main("simulate", simulate.main, ["--config", str(path)])
+    return code, capsys.readouterr().err
+
+
+def _edit(path, fn):
+    body = yaml.safe_load(path.read_text())
+    fn(body)
+    path.write_text(yaml.safe_dump(body))
+
+
+@pytest.mark.parametrize("edit, key, words", [
+    (lambda b: b["simulate"].update(particle_radiuss=0.01), "simulate.particle_radiuss", "unknown key"),
+    (lambda b: b["simulate"].update(frames="many"), "simulate.frames", "must be an integer"),
+    (lambda b: b["simulate"].update(particle_radius=-0.01), "simulate.particle_radius", "must be > 0"),
+    (lambda b: b.update(scenes=["no_such_scene"]), "scenes", "unknown scene 'no_such_scene'"),
+    (lambda b: b.update(device="tpu"), "device", "must be one of"),
+])
+def test_bad_config_exits_2_naming_file_and_key(tiny_dam, capsys, edit, key, words):
+    _edit(tiny_dam, edit)
+    code, err = _run(tiny_dam, capsys)
+    assert code == 2
+    assert str(tiny_dam) in err and f": {key}:" in err and words in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tiny_dam.parent / "data").exists(), "nothing may be written"
+
+
+def test_bad_scene_file_names_scene_file(tiny_dam):
+    scene_file = tiny_dam.parent / "scenes" / "tiny_dam.yaml"
+    _edit(scene_file, lambda s: s["fluid"][0].update(shape="cone"))
+    with pytest.raises(ConfigError) as err:
+        load(tiny_dam)
+    assert str(scene_file) in str(err.value) and "fluid[0].shape" in str(err.value)
+
+
+def test_repository_configs_load():
+    from tests.conftest import ROOT
+
+    for name in ("default.yaml", "paper.yaml"):
+        loaded = load(ROOT / "configs" / name)
+        assert len(loaded.scenes) >= 6
