@@ -104,6 +104,64 @@ def collide(
     return collide_once(q, lo, hi, radius, spheres, box_lo, box_hi)
 
 
+@wp.func
+def wall_table(d: float, h: float, table: wp.array(dtype=wp.vec2)) -> wp.vec2:
+    """(density per unit mass, its derivative in d) of the virtual fluid behind a wall at distance d."""
+    if d >= h:
+        return wp.vec2(0.0, 0.0)
+    u = wp.max(d, 0.0) / h * float(table.shape[0] - 1)
+    k = wp.min(int(u), table.shape[0] - 2)
+    t = u - float(k)
+    return table[k] * (1.0 - t) + table[k + 1] * t
+
+
+@wp.func
+def add_wall(acc: wp.vec4, d: float, n: wp.vec3, h: float, table: wp.array(dtype=wp.vec2)) -> wp.vec4:
+    """Accumulate (gradient xyz, density) of one wall with inward normal n at distance d."""
+    w = wall_table(d, h, table)
+    g = n * w[1]
+    return acc + wp.vec4(g[0], g[1], g[2], w[0])
+
+
+@wp.func
+def boundary_density(
+    p: wp.vec3,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    h: float,
+    table: wp.array(dtype=wp.vec2),
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+) -> wp.vec4:
+    """Density per unit mass (w) and its gradient (xyz) contributed by container walls and obstacles.
+
+    Without it a particle at a wall misses the neighbours the wall cuts away, the constraint
+    drags it into the wall, and fluid piles up in corners and edges until it explodes.
+    Each solid is treated locally as a plane backed by fluid at rest (a precomputed 1D table).
+    """
+    acc = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    for a in range(3):
+        e = wp.vec3(0.0, 0.0, 0.0)
+        e[a] = 1.0
+        acc = add_wall(acc, p[a] - lo[a], e, h, table)
+        acc = add_wall(acc, hi[a] - p[a], -e, h, table)
+    for s in range(spheres.shape[0]):
+        sp = spheres[s]
+        r = p - wp.vec3(sp[0], sp[1], sp[2])
+        rl = wp.length(r)
+        if rl > 1.0e-9:
+            acc = add_wall(acc, rl - sp[3], r / rl, h, table)
+    for b in range(box_lo.shape[0]):
+        q = wp.vec3(wp.clamp(p[0], box_lo[b][0], box_hi[b][0]), wp.clamp(p[1], box_lo[b][1], box_hi[b][1]),
+                    wp.clamp(p[2], box_lo[b][2], box_hi[b][2]))
+        r = p - q
+        rl = wp.length(r)
+        if rl > 1.0e-9:
+            acc = add_wall(acc, rl, r / rl, h, table)
+    return acc
+
+
 @wp.kernel
 def predict_positions(
     offset: int,
@@ -257,10 +315,17 @@ def compute_lambda(
     corr_k: float,
     corr_w_dq: float,
     corr_n: int,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    wall: wp.array(dtype=wp.vec2),
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
     particle_rho: wp.array(dtype=float),
     particle_lambda: wp.array(dtype=float),
     pair_grad: wp.array(dtype=wp.vec3),
     pair_corr: wp.array(dtype=float),
+    wall_grad: wp.array(dtype=wp.vec3),
 ):
     """Density rho_i = sum m W and the constraint multiplier lambda_i = -C_i / (sum |grad C|^2 + eps).
 
@@ -297,6 +362,11 @@ def compute_lambda(
                     scorr = scorr * ratio
                 scorr = -corr_k * scorr
         pair_corr[i * max_neighbours + s] = scorr
+    b = boundary_density(xi, lo, hi, h, wall, spheres, box_lo, box_hi)
+    rho += mass * b[3]
+    gw = wp.vec3(b[0], b[1], b[2]) * vol
+    wall_grad[i] = gw
+    grad_i += gw
     sum_sq += wp.dot(grad_i, grad_i)
     c = wp.max(rho / rest_density - 1.0, 0.0)
     particle_rho[i] = rho
@@ -313,6 +383,7 @@ def apply_density_correction(
     max_neighbours: int,
     pair_grad: wp.array(dtype=wp.vec3),
     pair_corr: wp.array(dtype=float),
+    wall_grad: wp.array(dtype=wp.vec3),
     lo: wp.vec3,
     hi: wp.vec3,
     radius: float,
@@ -321,13 +392,18 @@ def apply_density_correction(
     box_hi: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """Position update dp_i = sum_j (lambda_i + lambda_j + s_corr) V grad W_ij, then collisions."""
+    """Position update dp_i = sum_j (lambda_i + lambda_j + s_corr) V grad W_ij (at most r), then collisions."""
     i = wp.tid() + offset
     li = particle_lambda[i]
-    dp = wp.vec3(0.0, 0.0, 0.0)
+    dp = wall_grad[i] * li
     for s in range(neighbour_count[i]):
         p = i * max_neighbours + s
         dp += pair_grad[p] * (li + particle_lambda[neighbour_index[p]] + pair_corr[p])
+    # A correction longer than a particle radius only happens when particles are jammed against
+    # walls; capping it keeps such corners from injecting energy (speeds of 50+ m/s otherwise).
+    dl = wp.length(dp)
+    if dl > radius:
+        dp = dp * (radius / dl)
     x_out[i] = collide(x_pred[i] + dp, lo, hi, radius, spheres, box_lo, box_hi)
 
 

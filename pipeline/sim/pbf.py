@@ -18,7 +18,7 @@ import warp as wp
 from pipeline.config import SceneConfig, SimulateConfig
 from pipeline.parallel import Launcher
 from pipeline.sim import kernels as K
-from pipeline.sim.seeding import EmitterSchedule, lattice_rest_sum, seed_fluid
+from pipeline.sim.seeding import EmitterSchedule, lattice_rest_sum, seed_fluid, wall_density_table
 
 
 # Cells per kernel radius of the neighbour grid: 2 tests ~40% fewer candidates than 1.
@@ -92,6 +92,8 @@ class PBFSolver:
         self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
         self.pair_grad = wp.zeros(cap * nb, dtype=wp.vec3, device=dev)
         self.pair_corr = wp.zeros(cap * nb, dtype=float, device=dev)
+        self.wall_grad = vec()
+        self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
         # Dense grid of cells of width h over the container.
         extent = np.asarray(self.scene.domain_hi) - np.asarray(self.scene.domain_lo)
         self.cell_width = self.h / CELLS_PER_H
@@ -176,10 +178,11 @@ class PBFSolver:
             launch(K.compute_lambda, n, [
                 self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, p.rest_density,
                 p.relaxation, p.artificial_pressure_k, self.corr_w_dq, p.artificial_pressure_n,
-                self.particle_rho, self.particle_lambda, self.pair_grad, self.pair_corr])
+                self.lo, self.hi, self.wall_table, *obstacles,
+                self.particle_rho, self.particle_lambda, self.pair_grad, self.pair_corr, self.wall_grad])
             launch(K.apply_density_correction, n, [
-                self.x_pred, self.particle_lambda, *nb, self.pair_grad, self.pair_corr, *bounds, *obstacles,
-                self.x_pred_other])
+                self.x_pred, self.particle_lambda, *nb, self.pair_grad, self.pair_corr, self.wall_grad,
+                *bounds, *obstacles, self.x_pred_other])
             self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
 
         launch(K.update_velocity, n, [self.particle_x, self.x_pred, 1.0 / self.dt, self.v_tmp])

@@ -24,6 +24,28 @@ def lattice_rest_sum(spacing: float, h: float) -> float:
     return float(w.sum() * 315.0 / (64.0 * math.pi * h**9))
 
 
+def wall_density_table(spacing: float, h: float, samples: int = 65) -> np.ndarray:
+    """Poly6 density per unit mass of fluid at rest behind a wall, and its derivative, vs distance.
+
+    Row k is for a particle at distance d_k = k h / (samples - 1) from the wall plane; the virtual
+    fluid is a lattice (spacing 2r) whose first layer sits r behind the plane, mirroring the
+    particles resting at r in front of it, so a resting first layer sees full rest density.
+    """
+    k = int(math.ceil(h / spacing)) + 1
+    lateral = np.arange(-k, k + 1) * spacing
+    layers = -0.5 * spacing - np.arange(0, k + 1) * spacing
+    gx, gy, gz = np.meshgrid(lateral, lateral, layers, indexing="ij")
+    d = np.linspace(0.0, h, samples)
+    coef = 315.0 / (64.0 * math.pi * h**9)
+    rho = np.empty(samples)
+    for i, di in enumerate(d):
+        r2 = gx**2 + gy**2 + (di - gz) ** 2
+        rho[i] = coef * np.sum(np.where(r2 < h * h, (h * h - r2) ** 3, 0.0))
+    grad = np.gradient(rho, d)
+    rho[-1], grad[-1] = 0.0, 0.0
+    return np.stack([rho, grad], axis=1).astype(np.float32)
+
+
 def _lattice_in_box(lo, hi, spacing: float) -> np.ndarray:
     axes = [np.arange(lo[a] + 0.5 * spacing, hi[a] - 0.25 * spacing, spacing) for a in range(3)]
     g = np.meshgrid(*axes, indexing="ij")
