@@ -231,16 +231,18 @@ class DatasetConfig:
     bilateral_max_radius_px: int = _f(24, ge=1)
     """Cap on the bilateral kernel radius (px)."""
     gaussian_sigma_px: float = _f(3.0, gt=0.0)
-    """Sigma of the naive Gaussian depth blur (px); also the 'blurred depth' input."""
+    """Sigma of the naive fixed-size Gaussian depth blur, the weakest baseline (px)."""
     nrf_delta_radii: float = _f(10.5, gt=0.0)
     """Narrow-range delta in particle radii (Truong's reference value)."""
     nrf_mu_radii: float = _f(1.0, gt=0.0)
     """Narrow-range mu in particle radii."""
+    nrf_radius_scale: float = _f(4.0, gt=0.0)
+    """Narrow-range kernel radius as a multiple of the projected particle radius (px / px)."""
     nrf_max_radius_px: int = _f(100, ge=1)
     """Cap on the narrow-range kernel radius (px)."""
     nrf_iterations: int = _f(3, ge=1)
     """Alternating separable passes of the narrow-range filter."""
-    nrf_cleanup_radius_px: int = _f(2, ge=0)
+    nrf_cleanup_radius_px: int = _f(4, ge=0)
     """Radius of the final 2D clean-up pass (px)."""
     aniso_smoothing: float = _f(0.9, ge=0.0, le=1.0)
     """Laplacian smoothing lambda of the particle centres (Yu & Turk)."""
@@ -252,8 +254,8 @@ class DatasetConfig:
     """Isotropic kernel scale for isolated particles k_n."""
     aniso_neps: int = _f(25, ge=1)
     """Neighbour count below which a particle stays a sphere (N_eps)."""
-    aniso_support_factor: float = _f(4.0, gt=0.0)
-    """Kernel support for the anisotropic density as a multiple of r (2h in Yu & Turk's terms)."""
+    aniso_kernel_radius: float = _f(4.0, gt=0.0)
+    """Density kernel radius h as a multiple of r; neighbours for the covariance lie within 2h."""
     iso_level: float = _f(0.5, gt=0.0)
     """Iso value of the normalised density (1 is a particle's rest density)."""
     grid_cells_per_radius: float = _f(1.5, gt=0.0)
@@ -434,7 +436,7 @@ def _convert(tp: Any, value: Any, file, key: str) -> Any:
             return tuple(_convert(args[0], v, file, f"{key}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
             raise ConfigError(file, key, f"must have {len(args)} elements, got {len(value)}")
-        return tuple(_convert(a, v, file, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+        return tuple(_convert(a, v, file, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value, file, key)
     if tp is bool:

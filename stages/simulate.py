@@ -17,8 +17,7 @@ from tqdm import tqdm
 from pipeline import cache
 from pipeline.config import SceneConfig, to_dict
 from pipeline.device import warp_device
-from pipeline.frames import (SequenceInfo, completed_frames, frame_name, load_frame, save_frame,
-                             write_sequence_info)
+from pipeline.frames import SequenceInfo, completed_frames, frame_name, load_frame, save_frame, write_sequence_info
 from pipeline.particles import read_particles
 from pipeline.timing import Timings
 from stages.common import Run, StageError, make_run, parse_args, stage_main

@@ -20,7 +20,6 @@ from pipeline.parallel import Launcher
 from pipeline.sim import kernels as K
 from pipeline.sim.seeding import EmitterSchedule, lattice_rest_sum, seed_fluid, wall_density_table
 
-
 # Cells per kernel radius of the neighbour grid: 2 tests ~40% fewer candidates than 1.
 CELLS_PER_H = 2
 

@@ -1,0 +1,333 @@
+"""Warp kernels of screen-space fluid rendering (van der Laan et al. 2009; Green 2010) and of the
+Narrow-Range Filter (Truong & Yuksel 2018).
+
+Depth convention (see ``pipeline.camera``): positive view depth d = -z_view, 0 for empty pixels.
+The narrow-range filter is written in that convention; in the paper's negative view-space z a
+sample "in front by more than delta" is z_j > z_i + delta, here d_j < d_i - delta.
+
+Per-pixel kernels take ``offset`` first and address pixel ``tid + offset`` of a row-major H x W
+image, so the host can launch chunks from a thread pool.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def splat_spheres(
+    centers_view: wp.array(dtype=wp.vec3),
+    radius: float,
+    focal: float,
+    width: int,
+    height: int,
+    depth: wp.array(dtype=float),
+    thickness: wp.array(dtype=float),
+):
+    """Exact ray-sphere splat: nearest front-surface depth (atomic min) and summed chord length."""
+    i = wp.tid()
+    c = centers_view[i]
+    d = -c[2]
+    if d <= radius:
+        return
+    cx = float(width) * 0.5 + focal * c[0] / d
+    cy = float(height) * 0.5 - focal * c[1] / d
+    rp = focal * radius / wp.sqrt(d * d - radius * radius) + 1.0
+    x0 = wp.max(int(wp.floor(cx - rp)), 0)
+    x1 = wp.min(int(wp.ceil(cx + rp)), width - 1)
+    y0 = wp.max(int(wp.floor(cy - rp)), 0)
+    y1 = wp.min(int(wp.ceil(cy + rp)), height - 1)
+    cc = wp.dot(c, c) - radius * radius
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            ray = wp.vec3((float(px) + 0.5 - float(width) * 0.5) / focal,
+                          -(float(py) + 0.5 - float(height) * 0.5) / focal, -1.0)
+            a = wp.dot(ray, ray)
+            b = wp.dot(ray, c)
+            disc = b * b - a * cc
+            if disc > 0.0:
+                sq = wp.sqrt(disc)
+                t0 = (b - sq) / a
+                idx = py * width + px
+                wp.atomic_min(depth, idx, t0)
+                wp.atomic_add(thickness, idx, 2.0 * sq / a * wp.sqrt(a))
+
+
+@wp.kernel
+def gaussian_pass(
+    offset: int,
+    depth_in: wp.array(dtype=float),
+    width: int,
+    height: int,
+    axis: int,
+    sigma: float,
+    radius: int,
+    depth_out: wp.array(dtype=float),
+):
+    """One separable Gaussian pass over fluid pixels only (the naive screen-space blur)."""
+    idx = wp.tid() + offset
+    d0 = depth_in[idx]
+    if d0 <= 0.0:
+        depth_out[idx] = 0.0
+        return
+    row = idx // width
+    col = idx - row * width
+    inv = 1.0 / (2.0 * sigma * sigma)
+    s = 0.0
+    ws = 0.0
+    for k in range(-radius, radius + 1):
+        x = col
+        y = row
+        if axis == 0:
+            x = col + k
+        else:
+            y = row + k
+        if x >= 0 and x < width and y >= 0 and y < height:
+            dk = depth_in[y * width + x]
+            if dk > 0.0:
+                w = wp.exp(-float(k * k) * inv)
+                s += w * dk
+                ws += w
+    depth_out[idx] = s / ws
+
+
+@wp.kernel
+def bilateral_filter(
+    offset: int,
+    depth_in: wp.array(dtype=float),
+    width: int,
+    height: int,
+    focal: float,
+    particle_radius: float,
+    sigma_scale: float,
+    range_sigma: float,
+    max_radius: int,
+    depth_out: wp.array(dtype=float),
+):
+    """Bilateral Gaussian: spatial sigma = scale x projected particle radius, range sigma in metres."""
+    idx = wp.tid() + offset
+    d0 = depth_in[idx]
+    if d0 <= 0.0:
+        depth_out[idx] = 0.0
+        return
+    row = idx // width
+    col = idx - row * width
+    sigma = wp.max(sigma_scale * focal * particle_radius / d0, 0.5)
+    rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
+    inv_s = 1.0 / (2.0 * sigma * sigma)
+    inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
+    s = 0.0
+    ws = 0.0
+    for dy in range(-rad, rad + 1):
+        y = row + dy
+        if y >= 0 and y < height:
+            for dx in range(-rad, rad + 1):
+                x = col + dx
+                if x >= 0 and x < width:
+                    dk = depth_in[y * width + x]
+                    if dk > 0.0:
+                        dz = dk - d0
+                        w = wp.exp(-float(dx * dx + dy * dy) * inv_s - dz * dz * inv_r)
+                        s += w * dk
+                        ws += w
+    depth_out[idx] = s / ws
+
+
+@wp.func
+def nrf_sample(dk: float, d0: float, mu: float) -> float:
+    """Sample value after clamping: empty pixels and samples far behind count as d0 + mu."""
+    if dk <= 0.0:
+        return d0 + mu
+    return dk
+
+
+@wp.kernel
+def narrow_range_pass(
+    offset: int,
+    depth_in: wp.array(dtype=float),
+    width: int,
+    height: int,
+    axis: int,
+    focal: float,
+    particle_radius: float,
+    radius_scale: float,
+    max_radius: int,
+    delta: float,
+    mu: float,
+    depth_out: wp.array(dtype=float),
+):
+    """One 1D pass of the Narrow-Range Filter with bias correction and dynamic range.
+
+    Walking outwards on both sides, a sample in front of the pixel by more than the current
+    near bound gets weight 0, and so does its mirrored partner (bias correction: the kernel stays
+    symmetric). A sample behind by more than the far bound is clamped to d0 + mu. An accepted
+    sample widens the range to its own value +- delta (dynamic range), so an oblique plane is
+    followed instead of being cut off as a discontinuity.
+    """
+    idx = wp.tid() + offset
+    d0 = depth_in[idx]
+    if d0 <= 0.0:
+        depth_out[idx] = 0.0
+        return
+    row = idx // width
+    col = idx - row * width
+    rad = wp.min(int(wp.ceil(radius_scale * focal * particle_radius / d0)), max_radius)
+    if rad < 1:
+        depth_out[idx] = d0
+        return
+    sigma = float(rad) / 3.0
+    inv = 1.0 / (2.0 * sigma * sigma)
+    near1 = d0 - delta
+    far1 = d0 + delta
+    near2 = near1
+    far2 = far1
+    s = d0
+    ws = 1.0
+    for k in range(1, rad + 1):
+        xa = col
+        ya = row
+        xb = col
+        yb = row
+        if axis == 0:
+            xa = col + k
+            xb = col - k
+        else:
+            ya = row + k
+            yb = row - k
+        da = 0.0
+        db = 0.0
+        if xa >= 0 and xa < width and ya >= 0 and ya < height:
+            da = depth_in[ya * width + xa]
+        if xb >= 0 and xb < width and yb >= 0 and yb < height:
+            db = depth_in[yb * width + xb]
+        w = wp.exp(-float(k * k) * inv)
+        wa = w
+        wb = w
+        va = nrf_sample(da, d0, mu)
+        vb = nrf_sample(db, d0, mu)
+        if da > 0.0 and va < near1:
+            wa = 0.0
+            wb = 0.0
+        if db > 0.0 and vb < near2:
+            wa = 0.0
+            wb = 0.0
+        if va > far1:
+            va = d0 + mu
+        elif da > 0.0:
+            near1 = wp.min(near1, va - delta)
+            far1 = wp.max(far1, va + delta)
+        if vb > far2:
+            vb = d0 + mu
+        elif db > 0.0:
+            near2 = wp.min(near2, vb - delta)
+            far2 = wp.max(far2, vb + delta)
+        s += wa * va + wb * vb
+        ws += wa + wb
+    depth_out[idx] = s / ws
+
+
+@wp.kernel
+def narrow_range_cleanup(
+    offset: int,
+    depth_in: wp.array(dtype=float),
+    width: int,
+    height: int,
+    radius: int,
+    delta: float,
+    mu: float,
+    depth_out: wp.array(dtype=float),
+):
+    """Small fixed-radius 2D narrow-range pass that removes the stripes of the separable passes."""
+    idx = wp.tid() + offset
+    d0 = depth_in[idx]
+    if d0 <= 0.0:
+        depth_out[idx] = 0.0
+        return
+    row = idx // width
+    col = idx - row * width
+    sigma = wp.max(float(radius) / 3.0, 0.5)
+    inv = 1.0 / (2.0 * sigma * sigma)
+    s = d0
+    ws = 1.0
+    # each offset in the upper half-plane together with its mirror image
+    for dy in range(0, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dy > 0 or dx > 0:
+                xa = col + dx
+                ya = row + dy
+                xb = col - dx
+                yb = row - dy
+                da = 0.0
+                db = 0.0
+                if xa >= 0 and xa < width and ya >= 0 and ya < height:
+                    da = depth_in[ya * width + xa]
+                if xb >= 0 and xb < width and yb >= 0 and yb < height:
+                    db = depth_in[yb * width + xb]
+                va = nrf_sample(da, d0, mu)
+                vb = nrf_sample(db, d0, mu)
+                if (da > 0.0 and va < d0 - delta) or (db > 0.0 and vb < d0 - delta):
+                    continue
+                if va > d0 + delta:
+                    va = d0 + mu
+                if vb > d0 + delta:
+                    vb = d0 + mu
+                w = wp.exp(-float(dx * dx + dy * dy) * inv)
+                s += w * (va + vb)
+                ws += 2.0 * w
+    depth_out[idx] = s / ws
+
+
+@wp.func
+def view_position(depth: wp.array(dtype=float), x: int, y: int, width: int, height: int, focal: float) -> wp.vec3:
+    """View-space point of pixel (x, y) at its depth."""
+    d = depth[y * width + x]
+    return wp.vec3((float(x) + 0.5 - float(width) * 0.5) / focal * d,
+                   -(float(y) + 0.5 - float(height) * 0.5) / focal * d, -d)
+
+
+@wp.kernel
+def normals_from_depth(
+    offset: int,
+    depth: wp.array(dtype=float),
+    width: int,
+    height: int,
+    focal: float,
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Normals from reconstructed view positions; at each pixel the one-sided difference with the
+    smaller depth change is used, so silhouettes do not blend with what lies behind them."""
+    idx = wp.tid() + offset
+    d0 = depth[idx]
+    if d0 <= 0.0:
+        normals[idx] = wp.vec3(0.0, 0.0, 0.0)
+        return
+    y = idx // width
+    x = idx - y * width
+    p = view_position(depth, x, y, width, height, focal)
+    ddx = wp.vec3(0.0, 0.0, 0.0)
+    best = 1.0e30
+    if x + 1 < width and depth[idx + 1] > 0.0:
+        q = view_position(depth, x + 1, y, width, height, focal) - p
+        ddx = q
+        best = wp.abs(q[2])
+    if x > 0 and depth[idx - 1] > 0.0:
+        q = p - view_position(depth, x - 1, y, width, height, focal)
+        if wp.abs(q[2]) < best:
+            ddx = q
+    ddy = wp.vec3(0.0, 0.0, 0.0)
+    best = 1.0e30
+    # +Y in view space is one row up
+    if y > 0 and depth[idx - width] > 0.0:
+        q = view_position(depth, x, y - 1, width, height, focal) - p
+        ddy = q
+        best = wp.abs(q[2])
+    if y + 1 < height and depth[idx + width] > 0.0:
+        q = p - view_position(depth, x, y + 1, width, height, focal)
+        if wp.abs(q[2]) < best:
+            ddy = q
+    n = wp.cross(ddx, ddy)
+    ln = wp.length(n)
+    if ln < 1.0e-20:
+        normals[idx] = wp.vec3(0.0, 0.0, 1.0)
+    else:
+        normals[idx] = n / ln
