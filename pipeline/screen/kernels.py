@@ -73,8 +73,8 @@ def gaussian_pass(
     row = idx // width
     col = idx - row * width
     inv = 1.0 / (2.0 * sigma * sigma)
-    s = 0.0
-    ws = 0.0
+    s = float(0.0)
+    ws = float(0.0)
     for k in range(-radius, radius + 1):
         x = col
         y = row
@@ -116,8 +116,8 @@ def bilateral_filter(
     rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
     inv_s = 1.0 / (2.0 * sigma * sigma)
     inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
-    s = 0.0
-    ws = 0.0
+    s = float(0.0)
+    ws = float(0.0)
     for dy in range(-rad, rad + 1):
         y = row + dy
         if y >= 0 and y < height:
@@ -182,7 +182,7 @@ def narrow_range_pass(
     near2 = near1
     far2 = far1
     s = d0
-    ws = 1.0
+    ws = float(1.0)
     for k in range(1, rad + 1):
         xa = col
         ya = row
@@ -194,8 +194,8 @@ def narrow_range_pass(
         else:
             ya = row + k
             yb = row - k
-        da = 0.0
-        db = 0.0
+        da = float(0.0)
+        db = float(0.0)
         if xa >= 0 and xa < width and ya >= 0 and ya < height:
             da = depth_in[ya * width + xa]
         if xb >= 0 and xb < width and yb >= 0 and yb < height:
@@ -248,7 +248,7 @@ def narrow_range_cleanup(
     sigma = wp.max(float(radius) / 3.0, 0.5)
     inv = 1.0 / (2.0 * sigma * sigma)
     s = d0
-    ws = 1.0
+    ws = float(1.0)
     # each offset in the upper half-plane together with its mirror image
     for dy in range(0, radius + 1):
         for dx in range(-radius, radius + 1):
@@ -257,8 +257,8 @@ def narrow_range_cleanup(
                 ya = row + dy
                 xb = col - dx
                 yb = row - dy
-                da = 0.0
-                db = 0.0
+                da = float(0.0)
+                db = float(0.0)
                 if xa >= 0 and xa < width and ya >= 0 and ya < height:
                     da = depth_in[ya * width + xa]
                 if xb >= 0 and xb < width and yb >= 0 and yb < height:
@@ -305,7 +305,7 @@ def normals_from_depth(
     x = idx - y * width
     p = view_position(depth, x, y, width, height, focal)
     ddx = wp.vec3(0.0, 0.0, 0.0)
-    best = 1.0e30
+    best = float(1.0e30)
     if x + 1 < width and depth[idx + 1] > 0.0:
         q = view_position(depth, x + 1, y, width, height, focal) - p
         ddx = q
@@ -315,7 +315,7 @@ def normals_from_depth(
         if wp.abs(q[2]) < best:
             ddx = q
     ddy = wp.vec3(0.0, 0.0, 0.0)
-    best = 1.0e30
+    best = float(1.0e30)
     # +Y in view space is one row up
     if y > 0 and depth[idx - width] > 0.0:
         q = view_position(depth, x, y - 1, width, height, focal) - p

@@ -63,7 +63,7 @@ def collide_once(
         if p[0] > bl[0] and p[0] < bh[0] and p[1] > bl[1] and p[1] < bh[1] and p[2] > bl[2] and p[2] < bh[2]:
             # push out through the nearest face
             best = p[0] - bl[0]
-            axis = 0
+            axis = int(0)
             target = bl[0]
             if bh[0] - p[0] < best:
                 best = bh[0] - p[0]
@@ -232,7 +232,7 @@ def find_cell_starts(offset: int, sorted_keys: wp.array(dtype=wp.int64), n: int,
     """cell_start[c] = first sorted index whose cell is >= c (binary search; cell_start[cells] = n)."""
     c = wp.tid() + offset
     first_key = wp.int64(c) * capacity
-    a = 0
+    a = int(0)
     b = n
     while a < b:
         m = (a + b) // 2
@@ -283,7 +283,7 @@ def find_neighbours(
     x0 = wp.max(c[0] - reach, 0)
     x1 = wp.min(c[0] + reach, dims[0] - 1)
     h2 = h * h
-    count = 0
+    count = int(0)
     for dz in range(-reach, reach + 1):
         z = c[2] + dz
         if z >= 0 and z < dims[2]:
@@ -339,7 +339,7 @@ def compute_lambda(
     rho = mass * poly6(0.0, h2, poly6_coef)
     vol = mass / rest_density
     grad_i = wp.vec3(0.0, 0.0, 0.0)
-    sum_sq = 0.0
+    sum_sq = float(0.0)
     n = neighbour_count[i]
     for s in range(n):
         j = neighbour_index[i * max_neighbours + s]
@@ -350,14 +350,14 @@ def compute_lambda(
         grad_i += g
         sum_sq += wp.dot(g, g)
         pair_grad[i * max_neighbours + s] = g
-        scorr = 0.0
+        scorr = float(0.0)
         if corr_k > 0.0:
             ratio = w / corr_w_dq
             if corr_n == 4:
                 ratio2 = ratio * ratio
                 scorr = -corr_k * ratio2 * ratio2
             else:
-                scorr = 1.0
+                scorr = float(1.0)
                 for _e in range(corr_n):
                     scorr = scorr * ratio
                 scorr = -corr_k * scorr
