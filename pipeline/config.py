@@ -224,9 +224,9 @@ class DatasetConfig:
     """Use every n-th simulated frame."""
     max_frames: int = _f(0, ge=0)
     """Use at most this many frames per scene (0: all)."""
-    bilateral_sigma_px_scale: float = _f(1.0, gt=0.0)
+    bilateral_sigma_px_scale: float = _f(2.0, gt=0.0)
     """Bilateral spatial sigma as a multiple of the projected particle radius (px / px)."""
-    bilateral_range_radii: float = _f(1.0, gt=0.0)
+    bilateral_range_radii: float = _f(6.0, gt=0.0)
     """Bilateral range sigma in particle radii (depth units / r)."""
     bilateral_max_radius_px: int = _f(24, ge=1)
     """Cap on the bilateral kernel radius (px)."""

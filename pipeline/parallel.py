@@ -46,6 +46,29 @@ class Launcher:
         for f in futures:
             f.result()
 
+    def split(self, n: int) -> list[tuple[int, int]]:
+        """The (start, count) chunks a launch over n indices uses."""
+        chunks = 1 if self._pool is None else max(1, min(self.threads, n // self.min_chunk))
+        bounds = [n * c // chunks for c in range(chunks + 1)]
+        return [(bounds[c], bounds[c + 1] - bounds[c]) for c in range(chunks) if bounds[c + 1] > bounds[c]]
+
+    def map(self, kernel: Any, n: int, inputs_for_chunk: Any) -> int:
+        """Launch chunks with per-chunk inputs (``inputs_for_chunk(c)``), e.g. a private output
+        buffer per chunk for scatter kernels that would otherwise race. Returns the chunk count."""
+        if kernel.module not in self._loaded:
+            wp.load_module(kernel.module, device=self.device)
+            self._loaded.add(kernel.module)
+        chunks = self.split(n)
+        if len(chunks) <= 1 or self._pool is None:
+            for c, (start, count) in enumerate(chunks):
+                wp.launch(kernel, dim=count, inputs=[start, *inputs_for_chunk(c)], device=self.device)
+            return len(chunks)
+        futures = [self._pool.submit(wp.launch, kernel, dim=count, inputs=[start, *inputs_for_chunk(c)],
+                                     device=self.device) for c, (start, count) in enumerate(chunks)]
+        for f in futures:
+            f.result()
+        return len(chunks)
+
     def close(self) -> None:
         """Stop the thread pool."""
         if self._pool is not None:
