@@ -36,11 +36,13 @@ def source_files(scene: SceneConfig) -> list[str]:
 
 def sim_entry(run: Run, scene: SceneConfig) -> cache.CacheEntry:
     """Cache entry of a scene's particle sequence (keyed on the scene, solver config and seed)."""
+    physics = to_dict(scene)
+    physics.pop("cameras")  # cameras matter downstream only
     if scene.source is not None:
         files = [(f, os.path.getsize(f), os.path.getmtime(f)) for f in source_files(scene)]
-        config = {"scene": to_dict(scene), "files": files}
+        config = {"scene": physics, "files": files}
     else:
-        config = {"scene": to_dict(scene), "simulate": to_dict(run.config.simulate), "seed": run.config.seed}
+        config = {"scene": physics, "simulate": to_dict(run.config.simulate), "seed": run.config.seed}
     return cache.entry(run.data_dir, "simulate", scene.name, config, {}, MODULES, run.device)
 
 
