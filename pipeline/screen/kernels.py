@@ -194,31 +194,30 @@ def narrow_range_pass(
         else:
             ya = row + k
             yb = row - k
-        da = float(0.0)
-        db = float(0.0)
-        if xa >= 0 and xa < width and ya >= 0 and ya < height:
-            da = depth_in[ya * width + xa]
-        if xb >= 0 and xb < width and yb >= 0 and yb < height:
-            db = depth_in[yb * width + xb]
+        # beyond the image border there is no information: drop the pair (keeps symmetry)
+        if xa < 0 or xa >= width or ya < 0 or ya >= height or xb < 0 or xb >= width or yb < 0 or yb >= height:
+            break
+        da = depth_in[ya * width + xa]
+        db = depth_in[yb * width + xb]
         w = wp.exp(-float(k * k) * inv)
         wa = w
         wb = w
         va = nrf_sample(da, d0, mu)
         vb = nrf_sample(db, d0, mu)
-        if da > 0.0 and va < near1:
+        a_front = da > 0.0 and va < near1
+        b_front = db > 0.0 and vb < near2
+        if a_front or b_front:
             wa = 0.0
             wb = 0.0
-        if db > 0.0 and vb < near2:
-            wa = 0.0
-            wb = 0.0
+        # only a sample that is neither in front nor behind the range widens the range
         if va > far1:
             va = d0 + mu
-        elif da > 0.0:
+        elif da > 0.0 and not a_front:
             near1 = wp.min(near1, va - delta)
             far1 = wp.max(far1, va + delta)
         if vb > far2:
             vb = d0 + mu
-        elif db > 0.0:
+        elif db > 0.0 and not b_front:
             near2 = wp.min(near2, vb - delta)
             far2 = wp.max(far2, vb + delta)
         s += wa * va + wb * vb
@@ -257,12 +256,10 @@ def narrow_range_cleanup(
                 ya = row + dy
                 xb = col - dx
                 yb = row - dy
-                da = float(0.0)
-                db = float(0.0)
-                if xa >= 0 and xa < width and ya >= 0 and ya < height:
-                    da = depth_in[ya * width + xa]
-                if xb >= 0 and xb < width and yb >= 0 and yb < height:
-                    db = depth_in[yb * width + xb]
+                if xa < 0 or xa >= width or ya < 0 or ya >= height or xb < 0 or xb >= width or yb < 0 or yb >= height:
+                    continue
+                da = depth_in[ya * width + xa]
+                db = depth_in[yb * width + xb]
                 va = nrf_sample(da, d0, mu)
                 vb = nrf_sample(db, d0, mu)
                 if (da > 0.0 and va < d0 - delta) or (db > 0.0 and vb < d0 - delta):

@@ -1,0 +1,1 @@
+"""The cGAN normal-map refiner of Choi et al. 2021: networks, losses, data."""

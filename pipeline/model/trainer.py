@@ -1,0 +1,158 @@
+"""Training and inference of the refiner: one object owning both networks and their optimisers."""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.config import TrainConfig, to_dict
+from pipeline.model.data import input_channel_count
+from pipeline.model.losses import adversarial_loss, content_loss, normal_constraint_loss
+from pipeline.model.networks import Discriminator, Generator
+
+
+def seed_everything(seed: int) -> None:
+    """Seed torch's CPU and CUDA generators."""
+    torch.manual_seed(seed)
+    if torch.cuda.is_available():
+        torch.cuda.manual_seed_all(seed)
+
+
+def build_generator(cfg: TrainConfig) -> Generator:
+    """The generator a training config describes."""
+    return Generator(input_channel_count(cfg.auxiliary_features), cfg.gen_base_channels, cfg.gen_downsamples,
+                     cfg.gen_res_blocks)
+
+
+class Refiner:
+    """cGAN of Choi et al.: G refines the normal map, D judges (condition, normal) pairs."""
+
+    def __init__(self, cfg: TrainConfig, device: str = "cpu", seed: int = 0):
+        self.cfg, self.device = cfg, torch.device(device)
+        seed_everything(seed)
+        self.generator = build_generator(cfg).to(self.device)
+        self.discriminator = Discriminator(6, cfg.disc_base_channels, cfg.disc_layers).to(self.device)
+        betas = (cfg.beta1, 0.999)
+        self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=cfg.lr, betas=betas)
+        self.opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=cfg.lr, betas=betas)
+        self.sched_g = torch.optim.lr_scheduler.ExponentialLR(self.opt_g, gamma=cfg.lr_decay)
+        self.sched_d = torch.optim.lr_scheduler.ExponentialLR(self.opt_d, gamma=cfg.lr_decay)
+        self.amp = cfg.mixed_precision and self.device.type == "cuda"
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp)
+
+    def _autocast(self):
+        return torch.autocast("cuda", dtype=torch.float16) if self.amp else nullcontext()
+
+    def train_step(self, inputs: np.ndarray, target: np.ndarray) -> dict[str, float]:
+        """One discriminator and one generator update on a batch (N x C x H x W arrays)."""
+        cfg = self.cfg
+        x = torch.from_numpy(inputs).to(self.device)
+        y = torch.from_numpy(target).to(self.device)
+        cond = x[:, :3]
+        self.generator.train()
+        self.discriminator.train()
+        with self._autocast():
+            fake = self.generator(x)
+        use_gan = cfg.lambda_adversarial > 0
+        loss_d = torch.zeros((), device=self.device)
+        if use_gan:
+            with self._autocast():
+                loss_d = 0.5 * (adversarial_loss(self.discriminator(cond, y), True)
+                                + adversarial_loss(self.discriminator(cond, fake.detach()), False))
+            self.opt_d.zero_grad(set_to_none=True)
+            self.scaler.scale(loss_d).backward()
+            self.scaler.step(self.opt_d)
+        with self._autocast():
+            adv = adversarial_loss(self.discriminator(cond, fake), True) if use_gan else torch.zeros(())
+            lc = content_loss(fake.float(), y, cfg.content_loss)
+            ln = normal_constraint_loss(fake.float())
+            loss_g = cfg.lambda_adversarial * adv + cfg.lambda_content * lc + cfg.lambda_normal * ln
+        self.opt_g.zero_grad(set_to_none=True)
+        self.scaler.scale(loss_g).backward()
+        self.scaler.step(self.opt_g)
+        self.scaler.update()
+        return {"loss_d": float(loss_d), "loss_adv": float(adv), "loss_content": float(lc),
+                "loss_normal": float(ln), "loss_g": float(loss_g)}
+
+    def end_epoch(self) -> None:
+        """Decay the learning rates."""
+        self.sched_g.step()
+        self.sched_d.step()
+
+    @torch.no_grad()
+    def predict(self, inputs: np.ndarray) -> np.ndarray:
+        """Refined normals (H x W x 3) of one C x H x W input (eval mode)."""
+        return predict(self.generator, inputs, self.device)
+
+    def state(self, epoch: int, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Everything a checkpoint holds: weights, construction arguments, config, optimisers."""
+        return {"generator": self.generator.state_dict(), "discriminator": self.discriminator.state_dict(),
+                "generator_args": dict(self.generator.args), "discriminator_args": dict(self.discriminator.args),
+                "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict(),
+                "sched_g": self.sched_g.state_dict(), "sched_d": self.sched_d.state_dict(),
+                "scaler": self.scaler.state_dict(), "config": to_dict(self.cfg), "epoch": epoch,
+                **(extra or {})}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint made by :meth:`state`."""
+        self.generator.load_state_dict(state["generator"])
+        self.discriminator.load_state_dict(state["discriminator"])
+        self.opt_g.load_state_dict(state["opt_g"])
+        self.opt_d.load_state_dict(state["opt_d"])
+        self.sched_g.load_state_dict(state["sched_g"])
+        self.sched_d.load_state_dict(state["sched_d"])
+        self.scaler.load_state_dict(state["scaler"])
+
+
+@torch.no_grad()
+def predict(generator: Generator, inputs: np.ndarray, device: torch.device | str = "cpu") -> np.ndarray:
+    """Run a generator on one C x H x W input, padding to its stride; returns H x W x 3."""
+    generator.eval()
+    _, h, w = inputs.shape
+    s = generator.stride
+    ph, pw = (-h) % s, (-w) % s
+    x = torch.from_numpy(np.ascontiguousarray(inputs))[None]
+    if ph or pw:
+        x = torch.nn.functional.pad(x, (0, pw, 0, ph))
+    y = generator(x.to(device))[0, :, :h, :w]
+    return y.permute(1, 2, 0).float().cpu().numpy()
+
+
+def load_generator(path, device: str = "cpu") -> tuple[Generator, dict[str, Any]]:
+    """Rebuild a generator from a checkpoint alone (``weights_only=True``); returns it and the
+    checkpoint's metadata (config, epoch, metrics)."""
+    state = torch.load(path, map_location=device, weights_only=True)
+    generator = Generator(**state["generator_args"]).to(device)
+    generator.load_state_dict(state["generator"])
+    generator.eval()
+    meta = {k: v for k, v in state.items() if k in ("config", "epoch", "metrics", "generator_args")}
+    return generator, meta
+
+
+def validation_metrics(generator: Generator, frames: list, device: torch.device | str = "cpu",
+                       threshold: float = 0.5) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """Angular error of refined and input (bilateral) normals against the mesh target.
+
+    Pixels count where both the compared map and the target show fluid (a refined pixel is
+    fluid when its normal is at least ``threshold`` long). Returns the summary and the refined
+    maps (for the PNG sheet).
+    """
+    from pipeline.metrics import angular_errors, iou, normal_mask, summarize_angles
+
+    refined_err, input_err, ious, preds = [], [], [], []
+    for f in frames:
+        pred = predict(generator, f.inputs, device)
+        target = np.moveaxis(f.target, 0, -1)
+        given = np.moveaxis(f.inputs[:3], 0, -1)
+        t_mask = normal_mask(target)
+        r_mask = normal_mask(pred, threshold)
+        refined_err.append(angular_errors(pred, target, r_mask & t_mask))
+        input_err.append(angular_errors(given, target, normal_mask(given) & t_mask))
+        ious.append(iou(r_mask, t_mask))
+        preds.append(pred)
+    refined = summarize_angles(np.concatenate(refined_err))
+    baseline = summarize_angles(np.concatenate(input_err))
+    return {"refined": refined, "bilateral": baseline, "refined_iou": float(np.mean(ious))}, preds

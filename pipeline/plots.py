@@ -1,0 +1,76 @@
+"""PNG figures: normal-map sheets, error maps and training curves (matplotlib, no display)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pipeline.cache import atomic_path  # noqa: E402
+
+
+def normal_rgb(normals: np.ndarray) -> np.ndarray:
+    """H x W x 3 normals to RGB in [0, 1] ((n + 1) / 2), black where empty."""
+    fluid = np.linalg.norm(normals, axis=-1, keepdims=True) > 0.5
+    return np.where(fluid, np.clip(normals * 0.5 + 0.5, 0, 1), 0.0)
+
+
+def angle_map(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Per-pixel angle in degrees where both maps show fluid, NaN elsewhere."""
+    a = pred / np.maximum(np.linalg.norm(pred, axis=-1, keepdims=True), 1e-12)
+    b = target / np.maximum(np.linalg.norm(target, axis=-1, keepdims=True), 1e-12)
+    both = (np.linalg.norm(pred, axis=-1) > 0.5) & (np.linalg.norm(target, axis=-1) > 0.5)
+    ang = np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
+    return np.where(both, ang, np.nan)
+
+
+def _save(fig, path: Path) -> None:
+    with atomic_path(Path(path)) as tmp:
+        fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
+def error_sheet(path: Path, frames: list, preds: list[np.ndarray]) -> None:
+    """Rows of input | refined | target | angular error of the refined map."""
+    if not frames:
+        return
+    fig, axes = plt.subplots(len(frames), 4, figsize=(12, 3 * len(frames)), squeeze=False)
+    for row, (f, pred) in enumerate(zip(frames, preds, strict=True)):
+        given = np.moveaxis(f.inputs[:3], 0, -1)
+        target = np.moveaxis(f.target, 0, -1)
+        panels = [normal_rgb(given), normal_rgb(pred), normal_rgb(target)]
+        for col, (img, title) in enumerate(zip(panels, ("input (bilateral)", "refined", "target (mesh)"),
+                                               strict=True)):
+            axes[row, col].imshow(img)
+            axes[row, col].set_title(title)
+        im = axes[row, 3].imshow(angle_map(pred, target), cmap="magma", vmin=0, vmax=45)
+        axes[row, 3].set_title("error (deg)")
+        fig.colorbar(im, ax=axes[row, 3], fraction=0.046)
+    for ax in axes.ravel():
+        ax.axis("off")
+    _save(fig, path)
+
+
+def loss_curves(path: Path, history: list[dict]) -> None:
+    """Training losses and validation angular error per epoch."""
+    if not history:
+        return
+    epochs = [h["epoch"] for h in history]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    for key in ("loss_content", "loss_normal", "loss_adv", "loss_d"):
+        a.plot(epochs, [h[key] for h in history], label=key.replace("loss_", ""))
+    a.set_yscale("log")
+    a.set_xlabel("epoch")
+    a.set_title("training losses")
+    a.legend()
+    b.plot(epochs, [h["val"]["refined"]["mean_deg"] for h in history], label="refined")
+    b.plot(epochs, [h["val"]["bilateral"]["mean_deg"] for h in history], label="bilateral input", ls="--")
+    b.set_xlabel("epoch")
+    b.set_ylabel("mean angular error (deg)")
+    b.set_title("held-out normals vs mesh")
+    b.legend()
+    _save(fig, path)
