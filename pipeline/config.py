@@ -254,7 +254,7 @@ class DatasetConfig:
     """Isotropic kernel scale for isolated particles k_n."""
     aniso_neps: int = _f(25, ge=1)
     """Neighbour count below which a particle stays a sphere (N_eps)."""
-    aniso_kernel_radius: float = _f(4.0, gt=0.0)
+    aniso_kernel_radius: float = _f(5.0, gt=0.0)
     """Density kernel radius h as a multiple of r; neighbours for the covariance lie within 2h."""
     iso_level: float = _f(0.5, gt=0.0)
     """Iso value of the normalised density (1 is a particle's rest density)."""

@@ -99,6 +99,21 @@ def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volum
     return grid.reshape(tuple(dims)), lo.astype(np.float64)
 
 
+def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, vertices: np.ndarray,
+                    launch: Launcher, device: str) -> np.ndarray:
+    """Outward unit normals of the anisotropic density at the given points (analytic gradient)."""
+    reach = float(extents.numpy().max())
+    c = centres.numpy()
+    lo, hi = c.min(0), c.max(0)
+    dims = [int(min(128, max(1, math.ceil((hi[a] - lo[a]) / reach) + 1))) for a in range(3)]
+    grid = wp.HashGrid(*dims, device=device)
+    grid.build(centres, reach)
+    out = wp.zeros(len(vertices), dtype=wp.vec3, device=device)
+    launch(K.density_gradient_normals, len(vertices), [grid.id, centres, kernel_g, reach,
+                                                       wp.array(vertices, dtype=wp.vec3, device=device), out])
+    return out.numpy()
+
+
 def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
                 device: str = "cpu") -> SurfaceMesh:
     """Anisotropic kernels -> density grid -> marching cubes -> mesh with gradient normals."""
@@ -117,12 +132,15 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
     if grid.max() <= p.iso_level:
         return _empty()
     with timings("marching_cubes"):
-        verts, faces, normals, _ = measure.marching_cubes(grid, level=p.iso_level, spacing=(cell, cell, cell),
-                                                          allow_degenerate=False)
+        verts, faces, grid_normals, _ = measure.marching_cubes(grid, level=p.iso_level,
+                                                               spacing=(cell, cell, cell), allow_degenerate=False)
     verts = (verts + origin).astype(np.float32)
-    # skimage 0.26 returns normals along the descending gradient: out of the fluid (checked in
-    # tests on a ball), so they are used as they are
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    with timings("normals"):
+        normals = density_normals(centres, g, extents, verts, launch, device)
+    # where the analytic gradient vanishes (never in practice) fall back to the grid's normals,
+    # which skimage 0.26 orients along the descending gradient: out of the fluid
+    bad = np.linalg.norm(normals, axis=1) < 0.5
+    normals[bad] = grid_normals[bad]
     mesh = SurfaceMesh(verts, faces.astype(np.int32), normals.astype(np.float32), timings)
     return mesh
 

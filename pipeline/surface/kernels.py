@@ -161,3 +161,39 @@ def raycast_mesh(
     normal_out[idx] = nv
     # the view-space ray has z = -1, so the view depth is the hit distance over its length
     depth_out[idx] = q.t / length
+
+
+@wp.kernel
+def density_gradient_normals(
+    offset: int,
+    grid: wp.uint64,
+    centres: wp.array(dtype=wp.vec3),
+    kernel_g: wp.array(dtype=wp.mat33),
+    reach: float,
+    vertices: wp.array(dtype=wp.vec3),
+    normals_out: wp.array(dtype=wp.vec3),
+):
+    """Outward unit normal -grad(phi)/|grad(phi)| of the anisotropic density at each vertex.
+
+    Evaluated from the kernels themselves, not from grid differences, so thin ellipsoids do not
+    alias into the normals (the grid only places the vertices).
+    grad V det(G) (1 - |G r|^2)^3 = -6 V det(G) (1 - |G r|^2)^2 G^T G r, with r = x - c.
+    """
+    k = wp.tid() + offset
+    x = vertices[k]
+    grad = wp.vec3(0.0, 0.0, 0.0)
+    q = wp.hash_grid_query(grid, x, reach)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        G = kernel_g[j]
+        r = x - centres[j]
+        u = G * r
+        q2 = wp.dot(u, u)
+        if q2 < 1.0:
+            t = 1.0 - q2
+            grad += (wp.transpose(G) * u) * (-6.0 * wp.determinant(G) * t * t)
+    ln = wp.length(grad)
+    if ln > 0.0:
+        normals_out[k] = -grad / ln
+    else:
+        normals_out[k] = wp.vec3(0.0, 0.0, 0.0)

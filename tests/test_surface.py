@@ -1,0 +1,120 @@
+"""Mesh targets: a lattice ball renders as a sphere; a sheet's kernels flatten along its normal."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import warp as wp
+
+from pipeline.camera import Camera, look_at
+from pipeline.config import DatasetConfig
+from pipeline.parallel import Launcher
+from pipeline.surface import anisotropic_kernels, reconstruct, render_maps
+
+R = 0.01
+
+
+@pytest.fixture(scope="module")
+def launch():
+    lau = Launcher("cpu")
+    yield lau
+    lau.close()
+
+
+def _lattice_ball(radius: float) -> np.ndarray:
+    ax = np.arange(-radius, radius + 1e-9, 2 * R)
+    p = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    return p[np.linalg.norm(p, axis=1) <= radius].astype(np.float32)
+
+
+def test_lattice_ball_renders_as_a_sphere(launch):
+    ball = _lattice_ball(0.2)
+    p = DatasetConfig()
+    mesh = reconstruct(ball, R, p, launch)
+    dist = np.linalg.norm(mesh.vertices, axis=1)
+    surface_r = float(np.median(dist))
+    # Laplacian smoothing (lambda = 0.9) pulls the outer layer inwards, as Yu & Turk note: the
+    # surface sits within a particle diameter or so of the outermost centres, and is round
+    assert 0.2 - 3 * R < surface_r < 0.2 + 2 * R
+    assert dist.std() < 0.25 * R
+    mesh_tm = mesh.to_trimesh()
+    assert mesh_tm.is_watertight and np.isfinite(mesh.vertices).all()
+    assert len(np.unique(mesh.faces)) == len(mesh.vertices), "every vertex is used"
+
+    cam = Camera(look_at((0.0, 0.1, 1.0), (0, 0, 0)), 35.0, 128, 128)
+    normals, depth, mask = render_maps(mesh, cam, launch)
+    # analytic sphere of the measured radius, seen from the same camera
+    eye = cam.eye
+    rays = cam.pixel_rays().astype(np.float64) @ cam.cam_to_world[:3, :3].T
+    a = (rays**2).sum(-1)
+    b = rays @ (-eye)
+    disc = b * b - a * (eye @ eye - surface_r**2)
+    hit = disc > 0
+    t = (b - np.sqrt(np.where(hit, disc, 0))) / a
+    point = eye + rays * t[..., None]
+    analytic_n = (point / surface_r) @ cam.view[:3, :3].T
+    iou = (hit & (mask > 0)).sum() / (hit | (mask > 0)).sum()
+    assert iou >= 0.97, iou
+    both = hit & (mask > 0)
+    cosang = np.clip((normals[both] * analytic_n[both]).sum(-1), -1, 1)
+    assert np.degrees(np.arccos(cosang)).mean() < 3.0
+    footprint = t[both] / cam.focal_px  # metres per pixel at that depth
+    assert np.mean(np.abs(depth[both] - t[both]) < footprint) > 0.97
+    assert np.abs(depth[both] - t[both]).mean() < 0.5 * footprint.mean()
+
+
+def _sheet(normal, jitter: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A three-layer lattice sheet (spacing 2r) with the given normal, jittered by +-jitter r."""
+    n = np.asarray(normal, float)
+    n /= np.linalg.norm(n)
+    u = np.cross(n, [0, 0, 1.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    s = np.arange(-0.2, 0.2 + 1e-9, 2 * R)
+    a, b, c = np.meshgrid(s, s, np.arange(3) * 2 * R, indexing="ij")
+    pts = a.ravel()[:, None] * u + b.ravel()[:, None] * v + c.ravel()[:, None] * n
+    inplane = np.maximum(np.abs(a.ravel()), np.abs(b.ravel()))
+    pts += np.random.default_rng(0).uniform(-jitter * R, jitter * R, pts.shape)
+    return pts.astype(np.float32), n, inplane
+
+
+def test_sheet_kernels_flatten_along_its_normal(launch):
+    pts, n, inplane = _sheet((0.3, 1.0, 0.2))
+    p = DatasetConfig()
+    _, g, _ = anisotropic_kernels(pts, R, p, launch, "cpu")
+    g = g.numpy()
+    interior = inplane < 0.2 - 2 * p.aniso_kernel_radius * R
+    assert interior.sum() > 100
+    # the kernel's shortest axis is the eigenvector of G with the largest eigenvalue
+    _, vecs = np.linalg.eigh(g[interior])
+    shortest = vecs[:, :, -1]
+    angle = np.degrees(np.arccos(np.clip(np.abs(shortest @ n), 0, 1)))
+    assert angle.max() < 5.0, angle.max()
+
+
+def test_anisotropic_surface_is_flatter_than_isotropic(launch):
+    """Same jittered sheet, same iso level: Yu & Turk's kernels against plain isotropic kernels
+    of radius h without centre smoothing. Mean normal deviation on the top face: the
+    anisotropic surface at most half the isotropic one (measured about 1.1 vs 4.7 degrees)."""
+    pts, n, _ = _sheet((0.3, 1.0, 0.2))
+    spreads = {}
+    variants = {"aniso": {}, "iso": {"aniso_neps": 10**6, "aniso_kn": 1.0, "aniso_smoothing": 0.0}}
+    for name, changes in variants.items():
+        mesh = reconstruct(pts, R, dataclasses.replace(DatasetConfig(), **changes), launch)
+        rel = mesh.vertices - pts.mean(0)
+        inplane = np.linalg.norm(rel - np.outer(rel @ n, n), axis=1)
+        top = (rel @ n > 0) & (inplane < 0.12)
+        assert top.sum() > 500
+        spreads[name] = float(np.degrees(np.arccos(np.clip(mesh.normals[top] @ n, -1, 1))).mean())
+    assert spreads["aniso"] < 0.5 * spreads["iso"], spreads
+    assert spreads["aniso"] < 3.0, spreads
+
+
+def test_empty_frame_gives_empty_maps(launch):
+    mesh = reconstruct(np.zeros((0, 3), np.float32), R, DatasetConfig(), launch)
+    cam = Camera(look_at((0, 0, 1), (0, 0, 0)), 40.0, 32, 32)
+    n, d, m = render_maps(mesh, cam, launch)
+    assert not n.any() and not d.any() and not m.any()
+    assert wp is not None
