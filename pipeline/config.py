@@ -389,9 +389,9 @@ class Config:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Compute device ('auto': CUDA when Warp and torch see one); DEEP_SSFR_DEVICE overrides."""
     scene_dir: str = "scenes"
-    """Folder of scene files, relative to this config file."""
+    """Folder of scene files, relative to the config file that sets it."""
     data_dir: str = "../data"
-    """Cache root, relative to this config file."""
+    """Cache root, relative to the config file that sets it."""
     simulate: SimulateConfig = _f(factory=SimulateConfig)
     """Stage 1."""
     dataset: DatasetConfig = _f(factory=DatasetConfig)
@@ -541,6 +541,33 @@ def load_scene(path: Path) -> SceneConfig:
     return scene
 
 
+_PATH_KEYS = ("scene_dir", "data_dir")
+
+
+def read_layered(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    """A config file merged over the file its ``base`` key names (a preset over the default).
+
+    Relative ``scene_dir`` / ``data_dir`` stay relative to the file that sets them.
+    """
+    path = Path(path).resolve()
+    if path in seen:
+        raise ConfigError(path, "base", "configs include each other in a cycle")
+    raw = read_yaml(path) or {}
+    if not isinstance(raw, dict):
+        raise ConfigError(path, "", "top level must be a mapping")
+    for key in _PATH_KEYS:
+        if isinstance(raw.get(key), str):
+            raw[key] = str((path.parent / raw[key]).resolve())
+    base = raw.pop("base", None)
+    if base is None:
+        for key, default in (("scene_dir", "scenes"), ("data_dir", "../data")):
+            raw.setdefault(key, str((path.parent / default).resolve()))
+        return raw
+    if not isinstance(base, str):
+        raise ConfigError(path, "base", "must be a path to another config file")
+    return _deep_update(read_layered(path.parent / base, (*seen, path)), raw)
+
+
 def load(path: str | Path, overrides: dict | None = None, only_scene: str | None = None) -> Loaded:
     """Load a pipeline config and its scene files.
 
@@ -548,13 +575,11 @@ def load(path: str | Path, overrides: dict | None = None, only_scene: str | None
     ``only_scene`` restricts the run to one configured scene.
     """
     path = Path(path)
-    raw = read_yaml(path) or {}
-    if not isinstance(raw, dict):
-        raise ConfigError(path, "", "top level must be a mapping")
+    raw = read_layered(path)
     if overrides:
         raw = _deep_update(raw, overrides)
     config = from_dict(Config, raw, path)
-    scene_dir = (path.parent / config.scene_dir).resolve()
+    scene_dir = Path(config.scene_dir)
     names = config.scenes
     if only_scene:
         if only_scene not in names:
@@ -573,4 +598,4 @@ def load(path: str | Path, overrides: dict | None = None, only_scene: str | None
     for held in config.dataset.holdout_scenes:
         if held not in config.scenes:
             raise ConfigError(path, "dataset.holdout_scenes", f"{held!r} is not in scenes")
-    return Loaded(config, scenes, path, (path.parent / config.data_dir).resolve())
+    return Loaded(config, scenes, path, Path(config.data_dir))

@@ -43,17 +43,19 @@ def dataset_frames(run: Run, n_frames: int) -> list[int]:
     return frames[: p.max_frames] if p.max_frames else frames
 
 
-def split_of(run: Run, scene: str, camera: str) -> str:
-    """'val' for held-out scenes and the validation camera path, else 'train'."""
-    p = run.config.dataset
-    if scene in p.holdout_scenes or camera == p.validation_camera:
-        return "val"
-    return "train"
+def split_of(run: Run, camera: str) -> str:
+    """'val' for the validation camera path, else 'train'. Whole held-out scenes
+    (``dataset.holdout_scenes``) are applied by the consumers, so changing them does not
+    invalidate the dataset."""
+    return "val" if camera == run.config.dataset.validation_camera else "train"
 
 
 def dataset_entry(run: Run, scene: SceneConfig, sim_key: str) -> cache.CacheEntry:
     """Cache entry keyed on the dataset config, the scene's cameras and the simulation."""
-    config = {"dataset": to_dict(run.config.dataset), "cameras": to_dict(scene.cameras)}
+    params = to_dict(run.config.dataset)
+    for key in ("holdout_scenes", "workers"):  # these change no file of the entry
+        params.pop(key)
+    config = {"dataset": params, "cameras": to_dict(scene.cameras)}
     return cache.entry(run.data_dir, "dataset", scene.name, config, {"simulate": sim_key}, MODULES, run.device)
 
 
@@ -122,7 +124,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
             name = f"{cam_path}/{frame_name(frame, 'exr')}"
             mask = read_exr(entry.path(name), ["A"])["A"]
             records.append({"file": name, "camera": cam_path, "frame": frame, "index": i,
-                            "split": split_of(run, scene.name, cam_path),
+                            "split": split_of(run, cam_path),
                             "fluid_share": round(float(mask.mean()), 5)})
     entry.finish([r["file"] for r in records], timings.as_dict(), frames=records,
                  particle_radius=info.particle_radius, width=p.width, height=p.height,

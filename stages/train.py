@@ -45,14 +45,15 @@ def collect(run: Run) -> tuple[dict[str, str], list[Path], list[Path]]:
     """Dataset keys and the train / validation EXR paths (building the dataset if needed)."""
     keys, train, val = {}, [], []
     chosen = set(train_scenes(run))
+    held_out = set(run.config.dataset.holdout_scenes)
     for scene in run.loaded.scenes.values():
         entry = dataset.ensure(run, scene)
         keys[scene.name] = entry.key
         for rec in entry.manifest()["frames"]:
-            if rec["split"] == "train" and scene.name in chosen:
-                train.append(entry.path(rec["file"]))
-            elif rec["split"] == "val":
+            if rec["split"] == "val" or scene.name in held_out:
                 val.append(entry.path(rec["file"]))
+            elif scene.name in chosen:
+                train.append(entry.path(rec["file"]))
     if not train:
         raise StageError("no training frames: check train.train_scenes, dataset.holdout_scenes and "
                          "dataset.validation_camera")
@@ -64,6 +65,7 @@ def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
     config = to_dict(run.config.train)
     config.pop("epochs")
     config["seed"] = run.config.seed
+    config["holdout_scenes"] = list(run.config.dataset.holdout_scenes)
     name = Path(run.loaded.path).stem
     return cache.entry(run.data_dir, "train", name, config, dataset_keys, MODULES, run.device)
 
