@@ -1,0 +1,142 @@
+"""The refiner: shapes, the normal-constraint loss, learning, and exact resume after a kill."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from pipeline.config import TrainConfig
+from pipeline.model.data import make_input
+from pipeline.model.losses import normal_constraint_loss
+from pipeline.model.networks import Discriminator, Generator
+from pipeline.model.trainer import Refiner
+from tests.conftest import ROOT
+
+
+@pytest.mark.parametrize("downsamples, size", [(2, (64, 96)), (2, (36, 20)), (3, (48, 8)), (0, (7, 5))])
+def test_generator_keeps_any_size_that_is_a_multiple_of_its_stride(downsamples, size):
+    g = Generator(5, 8, downsamples, 1).eval()
+    x = torch.randn(2, 5, *size)
+    y = g(x)
+    assert y.shape == (2, 3, *size)
+    assert y.abs().max() <= 1.0
+    if downsamples:
+        with pytest.raises(ValueError, match="multiple"):
+            g(torch.randn(1, 5, size[0] + 1, size[1]))
+
+
+def test_discriminator_takes_any_crop():
+    d = Discriminator(6, 8, 3)
+    for s in (32, 48, 64):
+        assert d(torch.randn(2, 3, s, s), torch.randn(2, 3, s, s)).shape == (2,)
+
+
+def _map(lengths: list[float]) -> torch.Tensor:
+    """1 x 3 x 1 x k normal map with the given vector lengths along a fixed direction."""
+    direction = torch.tensor([0.36, -0.48, 0.8])
+    return torch.stack([direction * length for length in lengths], dim=-1)[None, :, None, :]
+
+
+def test_normal_constraint_is_zero_for_unit_and_zero_vectors():
+    assert normal_constraint_loss(_map([1.0, 0.0, 1.0, 0.0])) < 1e-5
+
+
+@pytest.mark.parametrize("length, grows", [(0.8, True), (0.2, False), (1.3, False), (0.45, False), (0.55, True)])
+def test_normal_constraint_is_positive_and_pulls_towards_zero_or_one(length, grows):
+    n = _map([length]).requires_grad_(True)
+    loss = normal_constraint_loss(n)
+    assert loss > 0
+    loss.backward()
+    # a gradient step changes the length by -lr * (grad . n / |n|)
+    radial = float((n.grad * n).sum() / n.detach().norm())
+    assert (radial < 0) == grows
+
+
+def _ball_frames(size: int = 64):
+    """Two real training examples: splatted, bilateral-filtered balls and their mesh targets."""
+    from pipeline.camera import Camera, look_at
+    from pipeline.config import DatasetConfig
+    from pipeline.parallel import Launcher
+    from pipeline.screen import ScreenSpace
+    from pipeline.surface import reconstruct
+    from pipeline.views import screen_space_inputs, target_channels
+
+    r = 0.01
+    ax = np.arange(-0.1, 0.1 + 1e-9, 2 * r)
+    lattice = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    ss, launch, p = ScreenSpace("cpu"), Launcher("cpu"), DatasetConfig(width=size, height=size)
+    frames = []
+    for shift in ((0.0, 0.0, 0.0), (0.05, -0.03, 0.0)):
+        pts = lattice[np.linalg.norm(lattice, axis=1) <= 0.1] + shift
+        pts = pts + np.random.default_rng(len(frames)).uniform(-0.3 * r, 0.3 * r, pts.shape)
+        cam = Camera(look_at((0.0, 0.1, 0.6), (0, 0, 0)), 40.0, size, size)
+        ch = screen_space_inputs(pts.astype(np.float32), r, cam, p, ss, filters=("bilateral",))
+        ch.update(target_channels(reconstruct(pts.astype(np.float32), r, p, launch), cam, launch))
+        frames.append((make_input(ch), np.stack([ch[f"target.N.{a}"] for a in "XYZ"])))
+    ss.close()
+    launch.close()
+    return frames
+
+
+def test_training_cuts_the_content_loss_by_more_than_half():
+    frames = _ball_frames()
+    cfg = TrainConfig(gen_base_channels=16, gen_downsamples=2, gen_res_blocks=2, disc_base_channels=8, disc_layers=3,
+                      lr_decay=1.0)
+    refiner = Refiner(cfg, "cpu", seed=0)
+    x = np.stack([f[0] for f in frames])
+    y = np.stack([f[1] for f in frames])
+    losses = [refiner.train_step(x, y)["loss_content"] for _ in range(200)]
+    first, last = np.mean(losses[:10]), np.mean(losses[-10:])
+    assert last < 0.5 * first, (first, last)
+
+
+def _tiny_train_config(tmp_path, name: str) -> str:
+    body = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    body.update({"scenes": ["dam_break", "merging"], "scene_dir": str(ROOT / "configs" / "scenes"),
+                 "data_dir": str(tmp_path / name / "data")})
+    body["simulate"].update({"particle_radius": 0.03, "frames": 4})
+    body["dataset"] = {"width": 64, "height": 64, "frame_stride": 1, "holdout_scenes": ["merging"]}
+    body["train"] = {"epochs": 2, "crop": 32, "batch_size": 2, "crops_per_frame": 2, "gen_base_channels": 8,
+                     "gen_res_blocks": 1, "disc_base_channels": 8, "disc_layers": 2, "val_frames": 2, "threads": 1}
+    (tmp_path / name).mkdir()
+    path = tmp_path / name / "default.yaml"
+    path.write_text(yaml.safe_dump(body))
+    return str(path)
+
+
+def _generator_state(tmp_path, name):
+    (ckpt,) = (tmp_path / name / "data" / "train").glob("*/last.pt")
+    state = torch.load(ckpt, weights_only=True)
+    return state["generator"], state["epoch"]
+
+
+def test_resume_after_kill_equals_straight_run(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    straight = _tiny_train_config(tmp_path, "straight")
+    killed = _tiny_train_config(tmp_path, "killed")
+    run = [sys.executable, "-m", "stages.train", "--config"]
+    assert subprocess.run(run + [straight], cwd=ROOT, env=env, capture_output=True).returncode == 0
+    proc = subprocess.Popen(run + [killed], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    train_dir = tmp_path / "killed" / "data" / "train"
+    while time.time() < deadline and not list(train_dir.glob("*/last.pt")):
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    state, epoch = _generator_state(tmp_path, "killed")
+    assert epoch == 1, "the kill must land between the two epochs' checkpoints"
+    assert subprocess.run(run + [killed], cwd=ROOT, env=env, capture_output=True).returncode == 0
+    a, ea = _generator_state(tmp_path, "straight")
+    b, eb = _generator_state(tmp_path, "killed")
+    assert ea == eb == 2
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert not list(train_dir.rglob("*.tmp-*"))
