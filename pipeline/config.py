@@ -332,8 +332,9 @@ class RenderConfig:
     """Camera path to render."""
     method: Literal["refined", "gaussian", "bilateral", "nrf", "mesh"] = "refined"
     """Normal-map source."""
-    weights: str = ""
-    """Generator checkpoint ('' : the trained one in the cache if any, else the shipped weights)."""
+    weights: str = "shipped"
+    """Generator: 'shipped' (in the package), 'trained' (this config's best checkpoint, training
+    it if needed) or a checkpoint path (relative to the working directory)."""
     frame_stride: int = _f(1, ge=1)
     """Render every n-th frame."""
     max_frames: int = _f(0, ge=0)
@@ -342,12 +343,14 @@ class RenderConfig:
     """Drop refined pixels whose normal is shorter than this (the paper's noise removal)."""
     fluid_color: Vec3 = (0.55, 0.78, 0.95)
     """Transmittance per metre of the fluid (linear RGB, Beer-Lambert)."""
-    absorption: float = _f(2.0, ge=0.0)
+    absorption: float = _f(4.0, ge=0.0)
     """Absorption strength multiplying -log(fluid_color) (1/m)."""
     ior: float = _f(1.33, gt=1.0)
     """Index of refraction (water 1.33)."""
     refraction_strength: float = _f(0.08, ge=0.0)
     """Screen-space refraction offset per metre of thickness (fraction of the image width)."""
+    diffuse_weight: float = _f(0.1, ge=0.0)
+    """Weight of the Lambertian term tinted by the fluid colour (scattering inside the fluid)."""
     specular: Literal["blinn", "ggx"] = "ggx"
     """Specular model."""
     roughness: float = _f(0.08, gt=0.0, le=1.0)

@@ -1,0 +1,69 @@
+"""8-bit images and videos: PNG files, labelled tiles, contact sheets and H.264 MP4s."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.cache import atomic_path
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """Write an 8-bit RGB(A) image atomically."""
+    import imageio.v3 as iio
+
+    with atomic_path(Path(path)) as tmp:
+        iio.imwrite(tmp, image, extension=".png")
+
+
+def label(image: np.ndarray, text: str) -> np.ndarray:
+    """The image with ``text`` printed in its top-left corner on a dark band."""
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(np.ascontiguousarray(image[..., :3]))
+    draw = ImageDraw.Draw(img)
+    box = draw.textbbox((4, 3), text)
+    draw.rectangle((0, 0, box[2] + 4, box[3] + 3), fill=(0, 0, 0))
+    draw.text((4, 3), text, fill=(255, 255, 255))
+    return np.asarray(img)
+
+
+def contact_sheet(path: Path, tiles: list[Path]) -> None:
+    """Stack comparison rows (PNG files) vertically into one sheet."""
+    import imageio.v3 as iio
+
+    rows = [iio.imread(p)[..., :3] for p in tiles]
+    write_png(path, np.concatenate(rows, axis=0))
+
+
+def write_video(path: Path, frames: list[Path], fps: float) -> None:
+    """Encode PNG frames as H.264 (yuv420p) with the ffmpeg bundled in imageio-ffmpeg."""
+    import imageio.v3 as iio
+    import imageio_ffmpeg
+
+    if not frames:
+        return
+    first = iio.imread(frames[0])[..., :3]
+    h, w = first.shape[:2]
+    pad_h, pad_w = h % 2, w % 2  # yuv420p needs even sides
+    with atomic_path(Path(path)) as tmp:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (w + pad_w, h + pad_h), fps=fps, codec="libx264",
+                                             pix_fmt_out="yuv420p", output_params=["-f", "mp4"],
+                                             macro_block_size=1, ffmpeg_log_level="error")
+        writer.send(None)
+        for f in frames:
+            img = iio.imread(f)[..., :3]
+            if pad_h or pad_w:
+                img = np.pad(img, ((0, pad_h), (0, pad_w), (0, 0)))
+            writer.send(np.ascontiguousarray(img))
+        writer.close()
+
+
+def count_video_frames(path: Path) -> int:
+    """Frames in a video, read back by decoding it."""
+    import imageio_ffmpeg
+
+    reader = imageio_ffmpeg.read_frames(str(path))
+    next(reader)  # metadata
+    return sum(1 for _ in reader)

@@ -1,0 +1,84 @@
+"""One frame from particles to a shaded image, with any normal-map method.
+
+Methods: ``refined`` (bilateral screen-space input through the generator, pixels whose predicted
+normal is shorter than a threshold dropped), ``gaussian``, ``bilateral``, ``nrf`` (screen-space
+filters) and ``mesh`` (the anisotropic marching-cubes surface, the reference).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.camera import Camera
+from pipeline.config import DatasetConfig, RenderConfig
+from pipeline.model.data import make_input
+from pipeline.model.trainer import predict
+from pipeline.parallel import Launcher
+from pipeline.screen import ScreenSpace
+from pipeline.shading import Shader
+from pipeline.surface import reconstruct
+from pipeline.timing import Timings
+from pipeline.views import screen_space_inputs, target_channels
+
+METHODS = ("gaussian", "bilateral", "nrf", "refined", "mesh")
+
+
+@dataclass
+class RenderedFrame:
+    """The passes of one rendered frame (H x W [x k], linear, view space)."""
+
+    beauty: np.ndarray      # RGBA
+    normals: np.ndarray     # the normal map that was shaded
+    depth: np.ndarray       # fluid view depth, 0 where no fluid
+    thickness: np.ndarray
+    mask: np.ndarray        # pixels the method calls fluid
+
+    def channels(self) -> dict[str, np.ndarray]:
+        """EXR channels named the Blender/Nuke way."""
+        out = {c: self.beauty[..., k] for k, c in enumerate("RGBA")}
+        out.update({f"N.{a}": self.normals[..., k] for k, a in enumerate("XYZ")})
+        out.update({"Z": self.depth, "thickness": self.thickness, "mask": self.mask})
+        return out
+
+
+def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
+                  ss: ScreenSpace, launch: Launcher, generator=None, threshold: float = 0.5,
+                  auxiliary: bool = True, timings: Timings | None = None) -> dict[str, np.ndarray]:
+    """Normals, depth, mask and thickness of a method for one view."""
+    t = timings or Timings()
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    screen_filter = "bilateral" if method in ("refined", "mesh") else method
+    with t("inputs"):
+        ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
+    thickness = ch["thickness"]
+    if method == "refined":
+        if generator is None:
+            raise ValueError("the refined method needs a generator")
+        with t("refiner"):
+            n = predict(generator, make_input(ch, auxiliary))
+        length = np.linalg.norm(n, axis=-1)
+        mask = (length >= threshold) & (ch["A"] > 0)
+        n = np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0)
+        return {"normals": n.astype(np.float32), "depth": np.where(mask, ch["bilateral.Z"], 0.0),
+                "mask": mask.astype(np.float32), "thickness": thickness}
+    if method == "mesh":
+        with t("mesh"):
+            mesh = reconstruct(positions, radius, filters, launch)
+            tc = target_channels(mesh, camera, launch)
+        n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
+        return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": thickness}
+    n = np.stack([ch[f"{method}.N.{a}"] for a in "XYZ"], -1)
+    return {"normals": n, "depth": ch[f"{method}.Z"], "mask": ch["A"], "thickness": thickness}
+
+
+def shade_frame(source: dict[str, np.ndarray], background: np.ndarray, background_depth: np.ndarray,
+                camera: Camera, p: RenderConfig, shader: Shader, timings: Timings | None = None) -> RenderedFrame:
+    """Deferred shading of a normal source over the background."""
+    t = timings or Timings()
+    with t("shading"):
+        beauty = shader.shade(source["normals"], source["depth"], source["thickness"], source["mask"], background,
+                              background_depth, camera, p)
+    return RenderedFrame(beauty, source["normals"], source["depth"], source["thickness"], source["mask"])

@@ -1,0 +1,102 @@
+"""Deferred shading of a fluid normal/depth/thickness buffer over a rendered background."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from pipeline.camera import Camera
+from pipeline.config import RenderConfig
+from pipeline.parallel import Launcher
+from pipeline.shading import kernels as K
+
+
+def fresnel_f0(ior: float) -> float:
+    """Normal-incidence reflectance ((n - 1) / (n + 1))^2 of an air-fluid interface (0.02 for water)."""
+    return ((ior - 1.0) / (ior + 1.0)) ** 2
+
+
+def absorption_coefficients(p: RenderConfig) -> np.ndarray:
+    """Beer-Lambert sigma_a per channel (1/m) from the fluid colour (transmittance per metre)."""
+    return -np.log(np.clip(np.asarray(p.fluid_color, np.float64), 1e-4, 1.0)) * p.absorption
+
+
+class Shader:
+    """Runs the shading kernel on one device."""
+
+    def __init__(self, device: str = "cpu", threads: int = 0, environment: np.ndarray | None = None):
+        self.device = device
+        self.launch = Launcher(device, threads, min_chunk=4096)
+        env = environment if environment is not None else np.zeros((1, 1, 3), np.float32)
+        self.use_env_map = int(environment is not None)
+        self.env = wp.array(np.ascontiguousarray(env, np.float32), dtype=wp.vec3, device=device)
+
+    def shade(self, normals: np.ndarray, depth: np.ndarray, thickness: np.ndarray, mask: np.ndarray,
+              background: np.ndarray, background_depth: np.ndarray, camera: Camera, p: RenderConfig) -> np.ndarray:
+        """Linear RGBA beauty (H x W x 4); alpha is 1 where the fluid is visible."""
+        h, w = depth.shape
+        dev = self.device
+
+        def arr(a, dtype=float):
+            return wp.array(np.ascontiguousarray(a, np.float32).reshape(h * w, -1).squeeze(-1) if dtype is float
+                            else np.ascontiguousarray(a, np.float32).reshape(h * w, 3), dtype=dtype, device=dev)
+
+        light_world = np.asarray(p.light_dir, np.float64)
+        light_world /= np.linalg.norm(light_world)
+        light_view = camera.view[:3, :3] @ light_world
+        out = wp.zeros(h * w, dtype=wp.vec4, device=dev)
+        rot = camera.cam_to_world[:3, :3].astype(np.float32)
+        alpha = max(p.roughness**2, 1e-3)
+        self.launch(K.shade_fluid, h * w, [
+            arr(normals, wp.vec3), arr(depth), arr(thickness), arr(mask), arr(background, wp.vec3),
+            arr(background_depth), self.env, self.use_env_map, wp.mat33(*rot.ravel()),
+            wp.vec3(*light_view.astype(np.float32)), wp.vec3(*light_world.astype(np.float32)), w, h,
+            camera.focal_px, fresnel_f0(p.ior), wp.vec3(*absorption_coefficients(p).astype(np.float32)),
+            wp.vec3(*p.fluid_color), p.diffuse_weight, p.light_intensity, alpha, int(p.specular == "ggx"),
+            p.refraction_strength * w, out])
+        return out.numpy().reshape(h, w, 4)
+
+    def fill_sky(self, background: np.ndarray, background_depth: np.ndarray, camera: Camera,
+                 p: RenderConfig) -> np.ndarray:
+        """The background with the environment filled in where nothing was rasterised."""
+        h, w = background_depth.shape
+        dev = self.device
+        sun = np.asarray(p.light_dir, np.float64)
+        sun /= np.linalg.norm(sun)
+        out = wp.zeros(h * w, dtype=wp.vec3, device=dev)
+        rot = camera.cam_to_world[:3, :3].astype(np.float32)
+        self.launch(K.fill_sky, h * w, [
+            wp.array(np.ascontiguousarray(background, np.float32).reshape(-1, 3), dtype=wp.vec3, device=dev),
+            wp.array(np.ascontiguousarray(background_depth, np.float32).ravel(), dtype=float, device=dev),
+            self.env, self.use_env_map, wp.mat33(*rot.ravel()), wp.vec3(*sun.astype(np.float32)), w, h,
+            camera.focal_px, out])
+        return out.numpy().reshape(h, w, 3)
+
+    def close(self) -> None:
+        """Stop the thread pool."""
+        self.launch.close()
+
+
+def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """Linear RGB to 8-bit sRGB for previews: exposure, ACES filmic curve (Narkowicz), sRGB."""
+    x = np.maximum(rgb[..., :3], 0.0) * (2.0**exposure)
+    mapped = np.clip((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
+    srgb = np.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * np.power(mapped, 1 / 2.4) - 0.055)
+    return (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """8-bit sRGB to linear float."""
+    x = np.asarray(c, np.float32) / 255.0
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+__all__ = ["Shader", "fresnel_f0", "absorption_coefficients", "tonemap", "srgb_to_linear"]
+
+
+def load_environment(path) -> np.ndarray:
+    """A latitude-longitude HDR map (EXR with R, G, B channels) as H x W x 3 linear float32."""
+    from pipeline.exr import read_exr
+
+    ch = read_exr(path, ["R", "G", "B"])
+    return np.stack([ch["R"], ch["G"], ch["B"]], -1).astype(np.float32)
