@@ -74,8 +74,8 @@ class Refiner:
         self.scaler.scale(loss_g).backward()
         self.scaler.step(self.opt_g)
         self.scaler.update()
-        return {"loss_d": float(loss_d), "loss_adv": float(adv), "loss_content": float(lc),
-                "loss_normal": float(ln), "loss_g": float(loss_g)}
+        return {"loss_d": loss_d.item(), "loss_adv": adv.item(), "loss_content": lc.item(),
+                "loss_normal": ln.item(), "loss_g": loss_g.item()}
 
     def end_epoch(self) -> None:
         """Decay the learning rates."""
