@@ -515,6 +515,8 @@ class Loaded:
     scenes: dict[str, SceneConfig]
     path: Path
     data_dir: Path
+    imported: dict[str, SceneConfig] = field(default_factory=dict)
+    """Imported particle scenes evaluated besides the held-out sequences (evaluate.imported_scenes)."""
 
     def scene(self, name: str) -> SceneConfig:
         """The named scene, or a ConfigError listing the configured ones."""
@@ -601,4 +603,12 @@ def load(path: str | Path, overrides: dict | None = None, only_scene: str | None
     for held in config.dataset.holdout_scenes:
         if held not in config.scenes:
             raise ConfigError(path, "dataset.holdout_scenes", f"{held!r} is not in scenes")
-    return Loaded(config, scenes, path, Path(config.data_dir))
+    imported = {}
+    for name in config.evaluate.imported_scenes:
+        scene_path = scene_dir / f"{name}.yaml"
+        if not scene_path.exists():
+            raise ConfigError(path, "evaluate.imported_scenes", f"unknown scene {name!r}: no file {scene_path}")
+        imported[name] = load_scene(scene_path)
+        if imported[name].source is None:
+            raise ConfigError(scene_path, "source", "an evaluate.imported_scenes entry must name a particle source")
+    return Loaded(config, scenes, path, Path(config.data_dir), imported)

@@ -74,3 +74,44 @@ def loss_curves(path: Path, history: list[dict]) -> None:
     b.set_title("held-out normals vs mesh")
     b.legend()
     _save(fig, path)
+
+
+def evaluation_figures(folder: Path, results: list[dict], table: dict, methods) -> None:
+    """methods.png (mean error and share under 10 degrees), frames.png (error over frames per
+    sequence) and examples.png (normal maps and error maps of a few held-out frames)."""
+    folder = Path(folder)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.5))
+    a.bar(methods, [table[m]["mean_deg"] for m in methods], color="tab:blue")
+    a.set_ylabel("mean angular error (deg)")
+    b.bar(methods, [100 * table[m]["under_10"] for m in methods], color="tab:green")
+    b.set_ylabel("pixels under 10 deg (%)")
+    fig.suptitle("held-out normal maps against the mesh")
+    _save(fig, folder / "methods.png")
+
+    cols = min(3, len(results))
+    rows = (len(results) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(4.5 * cols, 3 * rows), squeeze=False)
+    for ax, res in zip(axes.ravel(), results, strict=False):
+        for m in methods:
+            ax.plot(res["methods"][m]["per_frame_mean_deg"], label=m)
+        ax.set_title(f"{res['scene']} / {res['camera']}", fontsize=9)
+        ax.set_xlabel("frame")
+        ax.set_ylabel("mean error (deg)")
+    for ax in axes.ravel()[len(results):]:
+        ax.axis("off")
+    axes.ravel()[0].legend(fontsize=7)
+    _save(fig, folder / "frames.png")
+
+    examples = [e for r in results for e in r["examples"]][:4]
+    if not examples:
+        fig = plt.figure()
+        _save(fig, folder / "examples.png")
+        return
+    fig, axes = plt.subplots(len(examples), len(methods) + 1, figsize=(2.6 * (len(methods) + 1), 2.6 * len(examples)),
+                             squeeze=False)
+    for row, ex in zip(axes, examples, strict=True):
+        for ax, m in zip(row, (*methods, "target"), strict=True):
+            ax.imshow(normal_rgb(ex[m]))
+            ax.set_title(f"{m}" if m != "target" else f"mesh ({ex['scene']} {ex['frame']})", fontsize=8)
+            ax.axis("off")
+    _save(fig, folder / "examples.png")
