@@ -63,6 +63,9 @@ demo: setup
 bench: setup
 	$(PY) -m pip install -q -e '.[dev,bench]'
 	$(PY) benchmarks/bench_sim.py
+	$(PY) benchmarks/bench_dataset.py
+	$(PY) benchmarks/bench_train.py
+	$(PY) benchmarks/bench_render.py --demo
 
 cache-ls: setup
 	$(PY) -m stages.cache ls --config $(CONFIG)
