@@ -52,6 +52,15 @@ def full_neighbourhood_variance(spacing: float, support: float) -> float:
     return float(np.trace(cov) / 3.0)
 
 
+def _hash_grid(points: wp.array, host_points: np.ndarray, radius: float, device: str) -> wp.HashGrid:
+    """A Warp hash grid over ``points`` with cells of ``radius``, sized to their bounding box."""
+    extent = host_points.max(0) - host_points.min(0)
+    dims = [int(min(128, max(1, math.ceil(e / radius) + 1))) for e in extent]
+    grid = wp.HashGrid(*dims, device=device)
+    grid.build(points, radius)
+    return grid
+
+
 def _empty() -> SurfaceMesh:
     return SurfaceMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
 
@@ -63,10 +72,7 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     h = p.aniso_kernel_radius * radius
     support = 2.0 * h
     x = wp.array(positions.astype(np.float32), dtype=wp.vec3, device=device)
-    lo, hi = positions.min(0), positions.max(0)
-    dims = [int(min(128, max(1, math.ceil((hi[a] - lo[a]) / support) + 1))) for a in range(3)]
-    grid = wp.HashGrid(*dims, device=device)
-    grid.build(x, support)
+    grid = _hash_grid(x, positions, support, device)
     ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(2.0 * radius, support)
     centres = wp.zeros(n, dtype=wp.vec3, device=device)
     g = wp.zeros(n, dtype=wp.mat33, device=device)
@@ -103,11 +109,7 @@ def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, ve
                     launch: Launcher, device: str) -> np.ndarray:
     """Outward unit normals of the anisotropic density at the given points (analytic gradient)."""
     reach = float(extents.numpy().max())
-    c = centres.numpy()
-    lo, hi = c.min(0), c.max(0)
-    dims = [int(min(128, max(1, math.ceil((hi[a] - lo[a]) / reach) + 1))) for a in range(3)]
-    grid = wp.HashGrid(*dims, device=device)
-    grid.build(centres, reach)
+    grid = _hash_grid(centres, centres.numpy(), reach, device)
     out = wp.zeros(len(vertices), dtype=wp.vec3, device=device)
     launch(K.density_gradient_normals, len(vertices), [grid.id, centres, kernel_g, reach,
                                                        wp.array(vertices, dtype=wp.vec3, device=device), out])
