@@ -275,36 +275,27 @@ def find_neighbours(
     """Neighbour list within h, built once per step and reused by every solver loop.
 
     Particles are sorted by cell (x fastest), so the cells of each row around a particle form one
-    contiguous index range: (2 reach + 1)^2 range scans instead of hash lookups per cell, each
-    trimmed to the cells the sphere of radius h reaches (rows it misses are skipped).
+    contiguous index range: (2 reach + 1)^2 range scans instead of hash lookups per cell.
     """
     k = wp.tid() + offset
     xk = x_pred[k]
     c = cell_coord(xk, lo, inv_cell, dims)
-    cell = 1.0 / inv_cell
+    x0 = wp.max(c[0] - reach, 0)
+    x1 = wp.min(c[0] + reach, dims[0] - 1)
     h2 = h * h
     count = int(0)
     for dz in range(-reach, reach + 1):
         z = c[2] + dz
         if z >= 0 and z < dims[2]:
-            # distance from the particle to this slab of cells along z
-            gz = wp.max(wp.max(lo[2] + float(z) * cell - xk[2], xk[2] - (lo[2] + float(z + 1) * cell)), 0.0)
             for dy in range(-reach, reach + 1):
                 y = c[1] + dy
                 if y >= 0 and y < dims[1]:
-                    gy = wp.max(wp.max(lo[1] + float(y) * cell - xk[1], xk[1] - (lo[1] + float(y + 1) * cell)), 0.0)
-                    rest = h2 - gy * gy - gz * gz
-                    if rest > 0.0:
-                        # only the cells of this row that the sphere of radius h reaches
-                        half = wp.sqrt(rest)
-                        x0 = wp.clamp(int(wp.floor((xk[0] - half - lo[0]) * inv_cell)), 0, dims[0] - 1)
-                        x1 = wp.clamp(int(wp.floor((xk[0] + half - lo[0]) * inv_cell)), 0, dims[0] - 1)
-                        row = (z * dims[1] + y) * dims[0]
-                        for j in range(cell_start[row + x0], cell_start[row + x1 + 1]):
-                            if j != k and wp.length_sq(x_pred[j] - xk) < h2:
-                                if count < max_neighbours:
-                                    neighbour_index[k * max_neighbours + count] = j
-                                    count += 1
+                    row = (z * dims[1] + y) * dims[0]
+                    for j in range(cell_start[row + x0], cell_start[row + x1 + 1]):
+                        if j != k and wp.length_sq(x_pred[j] - xk) < h2:
+                            if count < max_neighbours:
+                                neighbour_index[k * max_neighbours + count] = j
+                                count += 1
     neighbour_count[k] = count
 
 
