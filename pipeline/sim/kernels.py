@@ -323,15 +323,15 @@ def compute_lambda(
     box_hi: wp.array(dtype=wp.vec3),
     particle_rho: wp.array(dtype=float),
     particle_lambda: wp.array(dtype=float),
-    pair_grad: wp.array(dtype=wp.vec3),
-    pair_corr: wp.array(dtype=float),
+    pair: wp.array(dtype=wp.vec4),
     wall_grad: wp.array(dtype=wp.vec3),
 ):
     """Density rho_i = sum m W and the constraint multiplier lambda_i = -C_i / (sum |grad C|^2 + eps).
 
     Positions do not move between this pass and the correction pass, so each pair's scaled
     kernel gradient and artificial pressure s_corr = -k (W / W(dq))^n are stored here and read back
-    there instead of being recomputed (the correction pass then needs no square root).
+    there instead of being recomputed (the correction pass then needs no square root); gradient and
+    s_corr share one vec4 so the correction pass reads one 16-byte record per pair.
     """
     i = wp.tid() + offset
     xi = x_pred[i]
@@ -349,7 +349,6 @@ def compute_lambda(
         g = spiky_grad(r, h, spiky_coef) * vol
         grad_i += g
         sum_sq += wp.dot(g, g)
-        pair_grad[i * max_neighbours + s] = g
         scorr = float(0.0)
         if corr_k > 0.0:
             ratio = w / corr_w_dq
@@ -361,7 +360,7 @@ def compute_lambda(
                 for _e in range(corr_n):
                     scorr = scorr * ratio
                 scorr = -corr_k * scorr
-        pair_corr[i * max_neighbours + s] = scorr
+        pair[i * max_neighbours + s] = wp.vec4(g[0], g[1], g[2], scorr)
     b = boundary_density(xi, lo, hi, h, wall, spheres, box_lo, box_hi)
     rho += mass * b[3]
     gw = wp.vec3(b[0], b[1], b[2]) * vol
@@ -381,8 +380,7 @@ def apply_density_correction(
     neighbour_count: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     max_neighbours: int,
-    pair_grad: wp.array(dtype=wp.vec3),
-    pair_corr: wp.array(dtype=float),
+    pair: wp.array(dtype=wp.vec4),
     wall_grad: wp.array(dtype=wp.vec3),
     lo: wp.vec3,
     hi: wp.vec3,
@@ -398,7 +396,8 @@ def apply_density_correction(
     dp = wall_grad[i] * li
     for s in range(neighbour_count[i]):
         p = i * max_neighbours + s
-        dp += pair_grad[p] * (li + particle_lambda[neighbour_index[p]] + pair_corr[p])
+        q = pair[p]
+        dp += wp.vec3(q[0], q[1], q[2]) * (li + particle_lambda[neighbour_index[p]] + q[3])
     # A correction longer than a particle radius only happens when particles are jammed against
     # walls; capping it keeps such corners from injecting energy (speeds of 50+ m/s otherwise).
     dl = wp.length(dp)

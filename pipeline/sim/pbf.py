@@ -89,8 +89,7 @@ class PBFSolver:
         self.order = wp.zeros(2 * cap, dtype=int, device=dev)
         self.neighbour_count = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
-        self.pair_grad = wp.zeros(cap * nb, dtype=wp.vec3, device=dev)
-        self.pair_corr = wp.zeros(cap * nb, dtype=float, device=dev)
+        self.pair = wp.zeros(cap * nb, dtype=wp.vec4, device=dev)
         self.wall_grad = vec()
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
         # Dense grid of cells of width h over the container.
@@ -178,9 +177,9 @@ class PBFSolver:
                 self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, p.rest_density,
                 p.relaxation, p.artificial_pressure_k, self.corr_w_dq, p.artificial_pressure_n,
                 self.lo, self.hi, self.wall_table, *obstacles,
-                self.particle_rho, self.particle_lambda, self.pair_grad, self.pair_corr, self.wall_grad])
+                self.particle_rho, self.particle_lambda, self.pair, self.wall_grad])
             launch(K.apply_density_correction, n, [
-                self.x_pred, self.particle_lambda, *nb, self.pair_grad, self.pair_corr, self.wall_grad,
+                self.x_pred, self.particle_lambda, *nb, self.pair, self.wall_grad,
                 *bounds, *obstacles, self.x_pred_other])
             self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
 
