@@ -65,7 +65,8 @@ def main() -> None:
             config.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\ndata_dir: {Path(tmp) / 'data'}\n")
             start = time.perf_counter()
             subprocess.run([sys.executable, "-m", "stages.demo", "--config", str(config)], cwd=ROOT, check=True,
-                           env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL)
+                           env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL)
             print(f"make demo (fresh cache, warm kernel cache): {time.perf_counter() - start:.0f} s")
             shutil.rmtree(Path(tmp) / "data", ignore_errors=True)
 
