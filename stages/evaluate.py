@@ -118,8 +118,9 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, generator,
     timings = time_methods(run, scene, camera_path, (*methods, "mesh"), generator, auxiliary)
     result = {}
     for m in methods:
-        series = np.array(per_frame[m])
-        flicker = float(np.nanmean(np.abs(np.diff(series)))) if len(series) > 1 else 0.0
+        steps = np.abs(np.diff(np.array(per_frame[m])))
+        steps = steps[np.isfinite(steps)]  # frames where a method shows no fluid have no error
+        flicker = float(steps.mean()) if steps.size else 0.0
         result[m] = {**summarize_angles(np.concatenate(errors[m]) if errors[m] else np.zeros(0)),
                      "iou": float(np.mean(ious[m])), "psnr": float(np.mean(psnr[m])),
                      "ssim": float(np.mean(ssim[m])), "flicker_deg": flicker,

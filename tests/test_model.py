@@ -56,7 +56,7 @@ def test_normal_constraint_is_positive_and_pulls_towards_zero_or_one(length, gro
     assert loss > 0
     loss.backward()
     # a gradient step changes the length by -lr * (grad . n / |n|)
-    radial = float((n.grad * n).sum() / n.detach().norm())
+    radial = float((n.grad * n.detach()).sum() / n.detach().norm())
     assert (radial < 0) == grows
 
 
