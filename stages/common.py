@@ -74,7 +74,8 @@ def quiet_warp() -> None:
 def stage_main(stage: str, body: Callable[[list[str] | None], None], argv: list[str] | None = None) -> int:
     """Run a stage body, turning known failures into a one-line message and an exit code.
 
-    Exit 2 for configuration errors (nothing written), 1 for input, cache or runtime failures.
+    Exit 2 for configuration errors (nothing written), 1 for input, cache or runtime failures;
+    ``DEEP_SSFR_DEBUG=1`` re-raises instead, with the traceback.
     """
     setup_logging()
     quiet_warp()
@@ -84,6 +85,8 @@ def stage_main(stage: str, body: Callable[[list[str] | None], None], argv: list[
         print(f"{stage}: config error: {exc}", file=sys.stderr)
         return 2
     except (StageError, CacheError, ValueError, RuntimeError, FileNotFoundError) as exc:
+        if os.environ.get("DEEP_SSFR_DEBUG"):
+            raise
         print(f"{stage}: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
