@@ -43,6 +43,19 @@ class RenderedFrame:
         return out
 
 
+def refine(generator, channels: dict[str, np.ndarray], auxiliary: bool = True,
+           threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Refined unit normals and their fluid mask from a view's screen-space channels.
+
+    Pixels whose predicted normal is shorter than ``threshold`` are dropped as noise (Choi et al.,
+    section 3.3), and so are pixels without splatted fluid (there is no depth to shade there).
+    """
+    n = predict(generator, make_input(channels, auxiliary))
+    length = np.linalg.norm(n, axis=-1)
+    mask = (length >= threshold) & (channels["A"] > 0)
+    return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
+
+
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
                   ss: ScreenSpace, launch: Launcher, generator=None, threshold: float = 0.5,
                   auxiliary: bool = True, timings: Timings | None = None) -> dict[str, np.ndarray]:
@@ -58,11 +71,8 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         if generator is None:
             raise ValueError("the refined method needs a generator")
         with t("refiner"):
-            n = predict(generator, make_input(ch, auxiliary))
-        length = np.linalg.norm(n, axis=-1)
-        mask = (length >= threshold) & (ch["A"] > 0)
-        n = np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0)
-        return {"normals": n.astype(np.float32), "depth": np.where(mask, ch["bilateral.Z"], 0.0),
+            n, mask = refine(generator, ch, auxiliary, threshold)
+        return {"normals": n, "depth": np.where(mask, ch["bilateral.Z"], 0.0),
                 "mask": mask.astype(np.float32), "thickness": thickness}
     if method == "mesh":
         with t("mesh"):

@@ -25,11 +25,9 @@ from pipeline.device import warp_device
 from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, read_sequence_info
 from pipeline.metrics import angular_errors, iou, summarize_angles
-from pipeline.model.data import make_input
-from pipeline.model.trainer import predict
 from pipeline.parallel import Launcher
 from pipeline.plots import evaluation_figures
-from pipeline.render import normal_source, shade_frame
+from pipeline.render import normal_source, refine, shade_frame
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, tonemap
 from pipeline.shading.background import BackgroundRenderer
@@ -58,10 +56,8 @@ def sequences(run: Run) -> list[tuple[SceneConfig, str]]:
 def _method_maps(method: str, ch: dict, generator, auxiliary: bool, threshold: float):
     """(normals, mask, depth) of a method from a dataset frame's channels."""
     if method == "refined":
-        n = predict(generator, make_input(ch, auxiliary))
-        length = np.linalg.norm(n, axis=-1)
-        mask = (length >= threshold) & (ch["A"] > 0)
-        return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0), mask, ch["bilateral.Z"]
+        n, mask = refine(generator, ch, auxiliary, threshold)
+        return n, mask, ch["bilateral.Z"]
     if method == "mesh":
         return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
     return stack(ch, f"{method}.N."), ch["A"] > 0, ch[f"{method}.Z"]
