@@ -6,9 +6,11 @@ s_corr against tensile instability, vorticity confinement and XSPH viscosity. Ma
 the particle volume V = m / rho_0 so every constant keeps SI units.
 
 Every kernel takes ``offset`` first: the host launches chunks of the index range from a thread
-pool (Warp releases the GIL and runs a CPU launch on one core). Each thread writes only its own
-particle's outputs, so chunks never race. Kernels are kept apart from the driver so that editing
-the driver does not recompile them.
+pool (Warp releases the GIL and runs a CPU launch on one core). The neighbour list is a half list
+(each pair once, at its lower index); the ``*_pairs`` kernels add each pair's share to both of its
+particles, which on the CPU is race-free under the two-phase block launch of ``Launcher.scatter``
+and on CUDA uses atomics. ``*_finish`` kernels then turn the sums into per-particle results.
+Kernels are kept apart from the driver so that editing the driver does not recompile them.
 """
 
 import warp as wp
@@ -228,19 +230,21 @@ def compute_cell_keys(
 
 @wp.kernel
 def find_cell_starts(offset: int, sorted_keys: wp.array(dtype=wp.int64), n: int, capacity: wp.int64,
-                     cell_start: wp.array(dtype=int)):
-    """cell_start[c] = first sorted index whose cell is >= c (binary search; cell_start[cells] = n)."""
-    c = wp.tid() + offset
-    first_key = wp.int64(c) * capacity
-    a = int(0)
-    b = n
-    while a < b:
-        m = (a + b) // 2
-        if sorted_keys[m] < first_key:
-            a = m + 1
-        else:
-            b = m
-    cell_start[c] = a
+                     num_cells: int, cell_start: wp.array(dtype=int)):
+    """cell_start[c] = first sorted index whose cell is >= c, over k in [0, n] (cell_start[cells] = n).
+
+    Each sorted particle that opens a new cell fills the starts of the empty cells before it, so
+    every entry is written exactly once: O(particles + cells) instead of a binary search per cell.
+    """
+    k = wp.tid() + offset
+    cell = num_cells
+    if k < n:
+        cell = int(sorted_keys[k] // capacity)
+    prev = int(-1)
+    if k > 0:
+        prev = int(sorted_keys[k - 1] // capacity)
+    for c in range(prev + 1, cell + 1):
+        cell_start[c] = k
 
 
 @wp.kernel
@@ -271,11 +275,16 @@ def find_neighbours(
     max_neighbours: int,
     neighbour_count: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
+    neighbour_span: wp.array(dtype=int),
 ):
-    """Neighbour list within h, built once per step and reused by every solver loop.
+    """Half neighbour list: for each particle k, the neighbours j > k (sorted order) within h.
 
-    Particles are sorted by cell (x fastest), so the cells of each row around a particle form one
-    contiguous index range: (2 reach + 1)^2 range scans instead of hash lookups per cell.
+    Every pair is stored once, at its lower index, and the solver passes scatter each pair's
+    contribution to both ends: half the distance tests and half the pair arithmetic of a full
+    list. Particles are sorted by cell (x fastest), so the neighbours after k lie in the rows
+    dz > 0, or dz = 0 and dy > 0, plus the rest of k's own row; each row of cells is one
+    contiguous index range. neighbour_span[k] is the largest j - k (indices come out ascending),
+    which bounds how far a pass that writes to j reaches past k.
     """
     k = wp.tid() + offset
     xk = x_pred[k]
@@ -283,24 +292,32 @@ def find_neighbours(
     x0 = wp.max(c[0] - reach, 0)
     x1 = wp.min(c[0] + reach, dims[0] - 1)
     h2 = h * h
+    base = k * max_neighbours
     count = int(0)
-    for dz in range(-reach, reach + 1):
+    last = k
+    for dz in range(0, reach + 1):
         z = c[2] + dz
-        if z >= 0 and z < dims[2]:
-            for dy in range(-reach, reach + 1):
-                y = c[1] + dy
-                if y >= 0 and y < dims[1]:
-                    row = (z * dims[1] + y) * dims[0]
-                    for j in range(cell_start[row + x0], cell_start[row + x1 + 1]):
-                        if j != k and wp.length_sq(x_pred[j] - xk) < h2:
-                            if count < max_neighbours:
-                                neighbour_index[k * max_neighbours + count] = j
-                                count += 1
+        if z < dims[2]:
+            y_first = c[1] - reach
+            if dz == 0:
+                y_first = c[1]
+            for y in range(wp.max(y_first, 0), wp.min(c[1] + reach, dims[1] - 1) + 1):
+                row = (z * dims[1] + y) * dims[0]
+                first = cell_start[row + x0]
+                if dz == 0 and y == c[1]:
+                    first = k + 1
+                for j in range(first, cell_start[row + x1 + 1]):
+                    if wp.length_sq(x_pred[j] - xk) < h2:
+                        if count < max_neighbours:
+                            neighbour_index[base + count] = j
+                            count += 1
+                            last = j
     neighbour_count[k] = count
+    neighbour_span[k] = last - k
 
 
 @wp.kernel
-def compute_lambda(
+def density_pairs(
     offset: int,
     x_pred: wp.array(dtype=wp.vec3),
     neighbour_count: wp.array(dtype=int),
@@ -310,48 +327,41 @@ def compute_lambda(
     poly6_coef: float,
     spiky_coef: float,
     mass: float,
-    rest_density: float,
-    relaxation: float,
+    vol: float,
     corr_k: float,
-    corr_w_dq: float,
+    inv_corr_w_dq: float,
     corr_n: int,
-    lo: wp.vec3,
-    hi: wp.vec3,
-    wall: wp.array(dtype=wp.vec2),
-    spheres: wp.array(dtype=wp.vec4),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
-    particle_rho: wp.array(dtype=float),
-    particle_lambda: wp.array(dtype=float),
     pair: wp.array(dtype=wp.vec4),
-    wall_grad: wp.array(dtype=wp.vec3),
+    acc: wp.array(dtype=wp.vec4),
+    acc_sq: wp.array(dtype=float),
 ):
-    """Density rho_i = sum m W and the constraint multiplier lambda_i = -C_i / (sum |grad C|^2 + eps).
+    """Pair sums of the density constraint: (sum V grad W, sum m W) into acc and sum |V grad W|^2.
 
-    Positions do not move between this pass and the correction pass, so each pair's scaled
-    kernel gradient and artificial pressure s_corr = -k (W / W(dq))^n are stored here and read back
-    there instead of being recomputed (the correction pass then needs no square root); gradient and
-    s_corr share one vec4 so the correction pass reads one 16-byte record per pair.
+    With r = x_i - x_j and g = V grad W(r), particle i gains (g, mW) and j gains (-g, mW); both
+    gain |g|^2. Each pair's g and artificial pressure s_corr = -k (W / W(dq))^n are cached in one
+    vec4 for the correction pass, which then needs no square root. The scatter to j is a plain
+    add on the CPU, made race-free by the two-phase block launch (``Launcher.scatter``).
     """
     i = wp.tid() + offset
     xi = x_pred[i]
     h2 = h * h
-    rho = mass * poly6(0.0, h2, poly6_coef)
-    vol = mass / rest_density
-    grad_i = wp.vec3(0.0, 0.0, 0.0)
-    sum_sq = float(0.0)
-    n = neighbour_count[i]
-    for s in range(n):
-        j = neighbour_index[i * max_neighbours + s]
+    own = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    own_sq = float(0.0)
+    base = i * max_neighbours
+    for s in range(neighbour_count[i]):
+        j = neighbour_index[base + s]
         r = xi - x_pred[j]
         w = poly6(wp.length_sq(r), h2, poly6_coef)
-        rho += mass * w
         g = spiky_grad(r, h, spiky_coef) * vol
-        grad_i += g
-        sum_sq += wp.dot(g, g)
+        gg = wp.dot(g, g)
+        mw = mass * w
+        own += wp.vec4(g[0], g[1], g[2], mw)
+        own_sq += gg
+        wp.atomic_add(acc, j, wp.vec4(-g[0], -g[1], -g[2], mw))
+        wp.atomic_add(acc_sq, j, gg)
         scorr = float(0.0)
         if corr_k > 0.0:
-            ratio = w / corr_w_dq
+            ratio = w * inv_corr_w_dq
             if corr_n == 4:
                 ratio2 = ratio * ratio
                 scorr = -corr_k * ratio2 * ratio2
@@ -360,27 +370,77 @@ def compute_lambda(
                 for _e in range(corr_n):
                     scorr = scorr * ratio
                 scorr = -corr_k * scorr
-        pair[i * max_neighbours + s] = wp.vec4(g[0], g[1], g[2], scorr)
-    b = boundary_density(xi, lo, hi, h, wall, spheres, box_lo, box_hi)
-    rho += mass * b[3]
-    gw = wp.vec3(b[0], b[1], b[2]) * vol
-    wall_grad[i] = gw
-    grad_i += gw
-    sum_sq += wp.dot(grad_i, grad_i)
-    c = wp.max(rho / rest_density - 1.0, 0.0)
-    particle_rho[i] = rho
-    particle_lambda[i] = -c / (sum_sq + relaxation)
+        pair[base + s] = wp.vec4(g[0], g[1], g[2], scorr)
+    wp.atomic_add(acc, i, own)
+    wp.atomic_add(acc_sq, i, own_sq)
 
 
 @wp.kernel
-def apply_density_correction(
+def density_finish(
     offset: int,
     x_pred: wp.array(dtype=wp.vec3),
+    acc: wp.array(dtype=wp.vec4),
+    acc_sq: wp.array(dtype=float),
+    h: float,
+    self_density: float,
+    vol: float,
+    rest_density: float,
+    relaxation: float,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    wall: wp.array(dtype=wp.vec2),
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    particle_rho: wp.array(dtype=float),
+    particle_lambda: wp.array(dtype=float),
+    wall_grad: wp.array(dtype=wp.vec3),
+):
+    """Density rho_i (own, neighbours, walls) and multiplier lambda_i = -C_i / (sum |grad C|^2 + eps)."""
+    i = wp.tid() + offset
+    a = acc[i]
+    b = boundary_density(x_pred[i], lo, hi, h, wall, spheres, box_lo, box_hi)
+    mass = vol * rest_density
+    rho = self_density + a[3] + mass * b[3]
+    gw = wp.vec3(b[0], b[1], b[2]) * vol
+    wall_grad[i] = gw
+    grad_i = wp.vec3(a[0], a[1], a[2]) + gw
+    c = wp.max(rho / rest_density - 1.0, 0.0)
+    particle_rho[i] = rho
+    particle_lambda[i] = -c / (acc_sq[i] + wp.dot(grad_i, grad_i) + relaxation)
+
+
+@wp.kernel
+def correction_pairs(
+    offset: int,
     particle_lambda: wp.array(dtype=float),
     neighbour_count: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     max_neighbours: int,
     pair: wp.array(dtype=wp.vec4),
+    acc_dp: wp.array(dtype=wp.vec3),
+):
+    """Position corrections: t = (lambda_i + lambda_j + s_corr) V grad W_ij, +t to i and -t to j."""
+    i = wp.tid() + offset
+    li = particle_lambda[i]
+    own = wp.vec3(0.0, 0.0, 0.0)
+    base = i * max_neighbours
+    for s in range(neighbour_count[i]):
+        p = base + s
+        q = pair[p]
+        j = neighbour_index[p]
+        t = wp.vec3(q[0], q[1], q[2]) * (li + particle_lambda[j] + q[3])
+        own += t
+        wp.atomic_add(acc_dp, j, -t)
+    wp.atomic_add(acc_dp, i, own)
+
+
+@wp.kernel
+def correction_finish(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_lambda: wp.array(dtype=float),
+    acc_dp: wp.array(dtype=wp.vec3),
     wall_grad: wp.array(dtype=wp.vec3),
     lo: wp.vec3,
     hi: wp.vec3,
@@ -390,14 +450,9 @@ def apply_density_correction(
     box_hi: wp.array(dtype=wp.vec3),
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """Position update dp_i = sum_j (lambda_i + lambda_j + s_corr) V grad W_ij (at most r), then collisions."""
+    """x_i + dp_i (pairs plus walls, at most r long), then collisions."""
     i = wp.tid() + offset
-    li = particle_lambda[i]
-    dp = wall_grad[i] * li
-    for s in range(neighbour_count[i]):
-        p = i * max_neighbours + s
-        q = pair[p]
-        dp += wp.vec3(q[0], q[1], q[2]) * (li + particle_lambda[neighbour_index[p]] + q[3])
+    dp = acc_dp[i] + wall_grad[i] * particle_lambda[i]
     # A correction longer than a particle radius only happens when particles are jammed against
     # walls; capping it keeps such corners from injecting energy (speeds of 50+ m/s otherwise).
     dl = wp.length(dp)
@@ -420,68 +475,109 @@ def update_velocity(
 
 
 @wp.kernel
-def compute_vorticity(
+def vorticity_pairs(
     offset: int,
     x_pred: wp.array(dtype=wp.vec3),
     particle_v: wp.array(dtype=wp.vec3),
-    neighbour_count: wp.array(dtype=int),
-    neighbour_index: wp.array(dtype=int),
-    max_neighbours: int,
-    h: float,
-    spiky_coef: float,
-    vol: float,
-    omega_out: wp.array(dtype=wp.vec3),
-):
-    """Vorticity omega_i = sum_j V (v_j - v_i) x grad_j W_ij (1/s)."""
-    i = wp.tid() + offset
-    xi = x_pred[i]
-    vi = particle_v[i]
-    w = wp.vec3(0.0, 0.0, 0.0)
-    for s in range(neighbour_count[i]):
-        j = neighbour_index[i * max_neighbours + s]
-        # grad with respect to p_j of W(p_i - p_j) is minus the gradient with respect to p_i
-        w += wp.cross(particle_v[j] - vi, -spiky_grad(xi - x_pred[j], h, spiky_coef)) * vol
-    omega_out[i] = w
-
-
-@wp.kernel
-def apply_vorticity_and_viscosity(
-    offset: int,
-    x_pred: wp.array(dtype=wp.vec3),
-    particle_v: wp.array(dtype=wp.vec3),
-    particle_omega: wp.array(dtype=wp.vec3),
-    particle_rho: wp.array(dtype=float),
     neighbour_count: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     max_neighbours: int,
     h: float,
     poly6_coef: float,
     spiky_coef: float,
+    vol: float,
+    pair: wp.array(dtype=wp.vec4),
+    acc_omega: wp.array(dtype=wp.vec3),
+):
+    """Vorticity omega_i = sum_j V (v_j - v_i) x grad_j W_ij (1/s).
+
+    The term is the same for both ends of a pair (swapping i and j flips both factors), so it is
+    added to i and j. Each pair's grad W and W are cached for the viscosity pass.
+    """
+    i = wp.tid() + offset
+    xi = x_pred[i]
+    vi = particle_v[i]
+    h2 = h * h
+    own = wp.vec3(0.0, 0.0, 0.0)
+    base = i * max_neighbours
+    for s in range(neighbour_count[i]):
+        p = base + s
+        j = neighbour_index[p]
+        r = xi - x_pred[j]
+        g = spiky_grad(r, h, spiky_coef)
+        # grad with respect to p_j of W(p_i - p_j) is minus the gradient with respect to p_i
+        term = wp.cross(particle_v[j] - vi, -g) * vol
+        own += term
+        wp.atomic_add(acc_omega, j, term)
+        pair[p] = wp.vec4(g[0], g[1], g[2], poly6(wp.length_sq(r), h2, poly6_coef))
+    wp.atomic_add(acc_omega, i, own)
+
+
+@wp.kernel
+def vector_length(offset: int, src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=float)):
+    """dst[i] = |src[i]|."""
+    i = wp.tid() + offset
+    dst[i] = wp.length(src[i])
+
+
+@wp.kernel
+def viscosity_pairs(
+    offset: int,
+    particle_v: wp.array(dtype=wp.vec3),
+    omega_length: wp.array(dtype=float),
+    particle_rho: wp.array(dtype=float),
+    neighbour_count: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    max_neighbours: int,
     mass: float,
+    pair: wp.array(dtype=wp.vec4),
+    acc_eta: wp.array(dtype=wp.vec3),
+    acc_visc: wp.array(dtype=wp.vec3),
+):
+    """eta_i = sum_j V_j grad W_ij (|omega_j| - |omega_i|) and XSPH sum_j V_j (v_j - v_i) W_ij, both ends."""
+    i = wp.tid() + offset
+    vi = particle_v[i]
+    wi = omega_length[i]
+    voli = mass / particle_rho[i]
+    own_eta = wp.vec3(0.0, 0.0, 0.0)
+    own_visc = wp.vec3(0.0, 0.0, 0.0)
+    base = i * max_neighbours
+    for s in range(neighbour_count[i]):
+        p = base + s
+        j = neighbour_index[p]
+        q = pair[p]
+        g = wp.vec3(q[0], q[1], q[2])
+        volj = mass / particle_rho[j]
+        dw = omega_length[j] - wi
+        dv = particle_v[j] - vi
+        own_eta += g * (dw * volj)
+        own_visc += dv * (q[3] * volj)
+        # for j the gradient and both differences flip sign
+        wp.atomic_add(acc_eta, j, g * (dw * voli))
+        wp.atomic_add(acc_visc, j, dv * (-q[3] * voli))
+    wp.atomic_add(acc_eta, i, own_eta)
+    wp.atomic_add(acc_visc, i, own_visc)
+
+
+@wp.kernel
+def viscosity_finish(
+    offset: int,
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    acc_eta: wp.array(dtype=wp.vec3),
+    acc_visc: wp.array(dtype=wp.vec3),
     vorticity_eps: float,
     xsph_c: float,
     dt: float,
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Vorticity confinement f = eps (N x omega), N = grad|omega| / |grad|omega||, then XSPH."""
+    """XSPH v + c sum, then vorticity confinement f = eps (N x omega), N = eta / |eta|."""
     i = wp.tid() + offset
-    xi = x_pred[i]
-    vi = particle_v[i]
-    wi = particle_omega[i]
-    wi_len = wp.length(wi)
-    h2 = h * h
-    eta = wp.vec3(0.0, 0.0, 0.0)
-    visc = wp.vec3(0.0, 0.0, 0.0)
-    for s in range(neighbour_count[i]):
-        j = neighbour_index[i * max_neighbours + s]
-        r = xi - x_pred[j]
-        volj = mass / particle_rho[j]
-        eta += spiky_grad(r, h, spiky_coef) * ((wp.length(particle_omega[j]) - wi_len) * volj)
-        visc += (particle_v[j] - vi) * (poly6(wp.length_sq(r), h2, poly6_coef) * volj)
-    v = vi + visc * xsph_c
+    v = particle_v[i] + acc_visc[i] * xsph_c
+    eta = acc_eta[i]
     el = wp.length(eta)
     if el > 1.0e-9 and vorticity_eps > 0.0:
-        v += wp.cross(eta / el, wi) * (vorticity_eps * dt)
+        v += wp.cross(eta / el, particle_omega[i]) * (vorticity_eps * dt)
     v_out[i] = v
 
 

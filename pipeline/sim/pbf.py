@@ -1,10 +1,12 @@
 """Position Based Fluids solver (Macklin & Mueller 2013) driving the kernels in ``kernels.py``.
 
-Each step: predict under gravity, hash-grid sort (particles are reordered into grid order so a
-neighbour walk touches nearby memory), one neighbour list, ``iterations`` density-constraint
-solves with collision projection, then velocity from the position change, vorticity confinement
-and XSPH viscosity. Emitters add layers of particles on a schedule fixed by the step index, so a
-run resumed from a saved frame continues exactly as an uninterrupted one.
+Each step: predict under gravity, cell sort (particles are reordered into grid order so a
+neighbour walk touches nearby memory), one half neighbour list (each pair once), ``iterations``
+density-constraint solves with collision projection, then velocity from the position change,
+vorticity confinement and XSPH viscosity. Pair passes scatter to both particles of a pair
+(``Launcher.scatter``) and a per-particle pass finishes each quantity. Emitters add layers of
+particles on a schedule fixed by the step index, so a run resumed from a saved frame continues
+exactly as an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ class PBFSolver:
         self.mass = params.rest_density / lattice_rest_sum(2.0 * r, self.h)
         dq = params.artificial_pressure_dq * self.h
         self.corr_w_dq = self.poly6_coef * (self.h**2 - dq**2) ** 3
+        self.self_density = self.mass * self.poly6_coef * self.h**6
         self.lo = wp.vec3(*scene.domain_lo)
         self.hi = wp.vec3(*scene.domain_hi)
 
@@ -88,9 +91,14 @@ class PBFSolver:
         self.cell_keys = wp.zeros(2 * cap, dtype=wp.int64, device=dev)
         self.order = wp.zeros(2 * cap, dtype=int, device=dev)
         self.neighbour_count = wp.zeros(cap, dtype=int, device=dev)
+        self.neighbour_span = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
         self.pair = wp.zeros(cap * nb, dtype=wp.vec4, device=dev)
         self.wall_grad = vec()
+        # pair-sum accumulators of the scatter passes
+        self.acc4 = wp.zeros(cap, dtype=wp.vec4, device=dev)
+        self.acc1 = wp.zeros(cap, dtype=float, device=dev)
+        self.acc3a, self.acc3b = vec(), vec()
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
         # Dense grid of cells of width h over the container.
         extent = np.asarray(self.scene.domain_hi) - np.asarray(self.scene.domain_lo)
@@ -155,12 +163,12 @@ class PBFSolver:
         launch(K.predict_positions, n, [self.particle_x, self.particle_v, g, self.dt, *bounds, *obstacles,
                                         self.v_tmp, self.x_pred])
 
-        # Sort into cell order (stable radix sort), then one neighbour list for all iterations.
+        # Sort into cell order (stable radix sort), then one half neighbour list for all passes.
         grid = [self.lo, 1.0 / self.cell_width, self.grid_dims]
         cap = wp.int64(self.capacity)
         launch(K.compute_cell_keys, n, [self.x_pred, *grid, self.particle_id, cap, self.cell_keys, self.order])
         wp.utils.radix_sort_pairs(self.cell_keys, self.order, n, end_bit=self.key_bits)
-        launch(K.find_cell_starts, self.num_cells + 1, [self.cell_keys, n, cap, self.cell_start])
+        launch(K.find_cell_starts, n + 1, [self.cell_keys, n, cap, self.num_cells, self.cell_start])
         launch(K.gather_vec3, n, [self.order, self.particle_x, self.x_sorted])
         launch(K.gather_vec3, n, [self.order, self.x_pred, self.x_pred_other])
         launch(K.gather_vec3, n, [self.order, self.v_tmp, self.particle_v])
@@ -170,27 +178,40 @@ class PBFSolver:
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
         nb = [self.neighbour_count, self.neighbour_index, p.max_neighbours]
         launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
-                                      self.neighbour_count, self.neighbour_index])
+                                      self.neighbour_count, self.neighbour_index, self.neighbour_span])
+        # how far past itself a particle's pairs reach: the scatter launches need it on the CPU
+        span = int(self.neighbour_span.numpy()[:n].max()) if launch.cpu else n
 
+        vol = self.mass / p.rest_density
         for _ in range(p.iterations):
-            launch(K.compute_lambda, n, [
-                self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, p.rest_density,
-                p.relaxation, p.artificial_pressure_k, self.corr_w_dq, p.artificial_pressure_n,
-                self.lo, self.hi, self.wall_table, *obstacles,
-                self.particle_rho, self.particle_lambda, self.pair, self.wall_grad])
-            launch(K.apply_density_correction, n, [
-                self.x_pred, self.particle_lambda, *nb, self.pair, self.wall_grad,
-                *bounds, *obstacles, self.x_pred_other])
+            self.acc4.zero_()
+            self.acc1.zero_()
+            launch.scatter(K.density_pairs, n, [
+                self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
+                p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n,
+                self.pair, self.acc4, self.acc1], span)
+            launch(K.density_finish, n, [
+                self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
+                p.relaxation, self.lo, self.hi, self.wall_table, *obstacles,
+                self.particle_rho, self.particle_lambda, self.wall_grad])
+            self.acc3a.zero_()
+            launch.scatter(K.correction_pairs, n, [self.particle_lambda, *nb, self.pair, self.acc3a], span)
+            launch(K.correction_finish, n, [
+                self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds, *obstacles,
+                self.x_pred_other])
             self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
 
         launch(K.update_velocity, n, [self.particle_x, self.x_pred, 1.0 / self.dt, self.v_tmp])
-        vol = self.mass / p.rest_density
-        launch(K.compute_vorticity, n, [self.x_pred, self.v_tmp, *nb, self.h, self.spiky_coef, vol,
-                                        self.particle_omega])
-        launch(K.apply_vorticity_and_viscosity, n, [
-            self.x_pred, self.v_tmp, self.particle_omega, self.particle_rho, *nb, self.h,
-            self.poly6_coef, self.spiky_coef, self.mass, p.vorticity_epsilon, p.xsph_viscosity, self.dt,
-            self.particle_v])
+        self.particle_omega.zero_()
+        launch.scatter(K.vorticity_pairs, n, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef,
+                                              self.spiky_coef, vol, self.pair, self.particle_omega], span)
+        launch(K.vector_length, n, [self.particle_omega, self.acc1])
+        self.acc3a.zero_()
+        self.acc3b.zero_()
+        launch.scatter(K.viscosity_pairs, n, [self.v_tmp, self.acc1, self.particle_rho, *nb, self.mass,
+                                              self.pair, self.acc3a, self.acc3b], span)
+        launch(K.viscosity_finish, n, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b,
+                                       p.vorticity_epsilon, p.xsph_viscosity, self.dt, self.particle_v])
         self.particle_x, self.x_pred = self.x_pred, self.particle_x
         self.step_index += 1
 
@@ -214,7 +235,8 @@ class PBFSolver:
             raise SimulationError(f"blow-up at frame {frame}: particles left the container")
         if ratio > 3.0:
             raise SimulationError(f"blow-up at frame {frame}: density {ratio:.1f}x rest")
-        mean_nb = float(self.neighbour_count.numpy()[:n].mean()) if n else 0.0
+        # the half list stores each pair once: a particle has twice as many neighbours on average
+        mean_nb = 2.0 * float(self.neighbour_count.numpy()[:n].mean()) if n else 0.0
         return FrameStats(n, ratio, mean_nb)
 
     def close(self) -> None:
