@@ -92,6 +92,8 @@ class PBFSolver:
         self.order = wp.zeros(2 * cap, dtype=int, device=dev)
         self.neighbour_count = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_span = wp.zeros(cap, dtype=int, device=dev)
+        self.neighbour_slots = wp.zeros(cap * nb, dtype=int, device=dev)
+        self.neighbour_start = wp.zeros(cap + 1, dtype=int, device=dev)  # [0] stays 0
         self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
         self.pair = wp.zeros(cap * nb, dtype=wp.vec4, device=dev)
         self.wall_grad = vec()
@@ -176,9 +178,12 @@ class PBFSolver:
         self.particle_x, self.x_sorted = self.x_sorted, self.particle_x
         self.particle_id, self.id_sorted = self.id_sorted, self.particle_id
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
-        nb = [self.neighbour_count, self.neighbour_index, p.max_neighbours]
         launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
-                                      self.neighbour_count, self.neighbour_index, self.neighbour_span])
+                                      self.neighbour_count, self.neighbour_slots, self.neighbour_span])
+        wp.utils.array_scan(self.neighbour_count[:n], self.neighbour_start[1:n + 1], inclusive=True)
+        launch(K.compact_neighbours, n, [self.neighbour_count, self.neighbour_slots, p.max_neighbours,
+                                         self.neighbour_start, self.neighbour_index])
+        nb = [self.neighbour_start, self.neighbour_index]
         # how far past itself a particle's pairs reach: the scatter launches need it on the CPU
         span = int(self.neighbour_span.numpy()[:n].max()) if launch.cpu else n
 
