@@ -12,11 +12,8 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+import numpy as np
 import warp as wp
-
-# Blocks a scatter launch is cut into (fewer when the span forbids): a constant, not the thread
-# count, so the order of floating-point sums does not depend on how many threads run them.
-SCATTER_BLOCKS = 8
 
 
 class Launcher:
@@ -75,33 +72,45 @@ class Launcher:
             f.result()
         return len(chunks)
 
-    @staticmethod
-    def scatter_blocks(n: int, span: int) -> list[tuple[int, int]]:
-        """(start, count) blocks of [0, n), each at least span + 1 long (see ``scatter``)."""
-        count = max(1, min(SCATTER_BLOCKS, n // (span + 1)))
-        bounds = [n * c // count for c in range(count + 1)]
+    def scatter_blocks(self, n: int, span: int, cumulative: np.ndarray | None = None) -> list[tuple[int, int]]:
+        """(start, count) blocks of [0, n) for ``scatter``: two per thread, each at least span + 1 long.
+
+        With ``cumulative`` (a prefix sum of per-index work, length n + 1, such as the pair counts of
+        a packed neighbour list) the cuts balance the work rather than the index count. The blocks
+        depend on n, span, the work and the thread count, so a run is bit-identical to another with
+        the same thread count. On CUDA there is one block.
+        """
+        if not self.cpu or n <= 0:
+            return [(0, n)]
+        count = max(1, min(2 * self.threads, n // (span + 1)))
+        if cumulative is None:
+            cuts = [n * c // count for c in range(1, count)]
+        else:
+            targets = float(cumulative[n]) * np.arange(1, count) / count
+            cuts = np.searchsorted(cumulative[: n + 1], targets).tolist()
+        # every block at least span + 1 long: push cuts forward, then back from the end
+        gap = span + 1
+        bounds = [0, *cuts, n]
+        for c in range(1, count):
+            bounds[c] = max(bounds[c], bounds[c - 1] + gap)
+        for c in range(count - 1, 0, -1):
+            bounds[c] = min(bounds[c], bounds[c + 1] - gap)
         return [(bounds[c], bounds[c + 1] - bounds[c]) for c in range(count)]
 
-    def scatter(self, kernel: Any, n: int, inputs: list[Any], span: int) -> None:
+    def scatter(self, kernel: Any, blocks: list[tuple[int, int]], inputs: list[Any]) -> None:
         """Launch a kernel whose index i also adds into indices (i, i + span], without races.
 
-        On the CPU [0, n) is cut into blocks at least span + 1 long, so a block writes only into
-        itself and the next block: the even blocks run concurrently, then the odd ones. The blocks
-        depend on n and span only, so results are bit-identical for any thread count. On CUDA one
-        launch covers all and the kernel's atomic adds resolve the conflicts.
+        ``blocks`` come from ``scatter_blocks``: each is at least span + 1 long, so a block writes
+        only into itself and the next one. The even blocks run concurrently, then the odd ones. On
+        CUDA one launch covers all and the kernel's atomic adds resolve the conflicts.
         """
-        if n <= 0:
-            return
         self._load(kernel)
-        if not self.cpu:
-            wp.launch(kernel, dim=n, inputs=[0, *inputs], device=self.device)
-            return
 
-        def run(blocks: list[tuple[int, int]]) -> None:
-            for start, count in blocks:
-                wp.launch(kernel, dim=count, inputs=[start, *inputs], device=self.device)
+        def run(own: list[tuple[int, int]]) -> None:
+            for start, count in own:
+                if count > 0:
+                    wp.launch(kernel, dim=count, inputs=[start, *inputs], device=self.device)
 
-        blocks = self.scatter_blocks(n, span)
         for phase in (blocks[0::2], blocks[1::2]):
             if self._pool is None or len(phase) <= 1:
                 run(phase)

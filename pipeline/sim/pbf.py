@@ -184,23 +184,25 @@ class PBFSolver:
         launch(K.compact_neighbours, n, [self.neighbour_count, self.neighbour_slots, p.max_neighbours,
                                          self.neighbour_start, self.neighbour_index])
         nb = [self.neighbour_start, self.neighbour_index]
-        # how far past itself a particle's pairs reach: the scatter launches need it on the CPU
-        span = int(self.neighbour_span.numpy()[:n].max()) if launch.cpu else n
+        # Blocks for the pair passes: how far past itself a particle's pairs reach bounds their
+        # size, the pair counts balance them (CPU only; on CUDA atomics make one launch safe).
+        blocks = launch.scatter_blocks(n, int(self.neighbour_span.numpy()[:n].max()),
+                                       self.neighbour_start.numpy()) if launch.cpu else [(0, n)]
 
         vol = self.mass / p.rest_density
         for _ in range(p.iterations):
             self.acc4.zero_()
             self.acc1.zero_()
-            launch.scatter(K.density_pairs, n, [
+            launch.scatter(K.density_pairs, blocks, [
                 self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
                 p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n,
-                self.pair, self.acc4, self.acc1], span)
+                self.pair, self.acc4, self.acc1])
             launch(K.density_finish, n, [
                 self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
                 p.relaxation, self.lo, self.hi, self.wall_table, *obstacles,
                 self.particle_rho, self.particle_lambda, self.wall_grad])
             self.acc3a.zero_()
-            launch.scatter(K.correction_pairs, n, [self.particle_lambda, *nb, self.pair, self.acc3a], span)
+            launch.scatter(K.correction_pairs, blocks, [self.particle_lambda, *nb, self.pair, self.acc3a])
             launch(K.correction_finish, n, [
                 self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds, *obstacles,
                 self.x_pred_other])
@@ -208,13 +210,13 @@ class PBFSolver:
 
         launch(K.update_velocity, n, [self.particle_x, self.x_pred, 1.0 / self.dt, self.v_tmp])
         self.particle_omega.zero_()
-        launch.scatter(K.vorticity_pairs, n, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef,
-                                              self.spiky_coef, vol, self.pair, self.particle_omega], span)
+        launch.scatter(K.vorticity_pairs, blocks, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef,
+                                              self.spiky_coef, vol, self.pair, self.particle_omega])
         launch(K.vector_length, n, [self.particle_omega, self.acc1])
         self.acc3a.zero_()
         self.acc3b.zero_()
-        launch.scatter(K.viscosity_pairs, n, [self.v_tmp, self.acc1, self.particle_rho, *nb, self.mass,
-                                              self.pair, self.acc3a, self.acc3b], span)
+        launch.scatter(K.viscosity_pairs, blocks, [self.v_tmp, self.acc1, self.particle_rho, *nb, self.mass,
+                                              self.pair, self.acc3a, self.acc3b])
         launch(K.viscosity_finish, n, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b,
                                        p.vorticity_epsilon, p.xsph_viscosity, self.dt, self.particle_v])
         self.particle_x, self.x_pred = self.x_pred, self.particle_x
