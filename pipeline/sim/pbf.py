@@ -66,7 +66,7 @@ class PBFSolver:
             raise SimulationError(f"scene {scene.name!r} has no particles")
         self.n = 0
         self.step_index = 0
-        self.launch = Launcher(device, params.threads)
+        self.launch = Launcher(device, params.threads, reuse=True)
         self._allocate()
         self._upload_obstacles()
         self._append(x0, v0)
