@@ -30,6 +30,8 @@ def _key(value: Any) -> Any:
         return value
     if isinstance(value, wp.array):
         return ("array", id(value))
+    if isinstance(getattr(value, "value", None), (bool, int, float)):  # Warp scalars such as wp.int64
+        return ("scalar", type(value).__name__, value.value)
     try:
         return ("value", type(value).__name__, tuple(value))
     except TypeError:
@@ -56,37 +58,48 @@ class Launcher:
             wp.load_module(kernel.module, device=self.device)
             self._loaded.add(kernel.module)
 
-    def _launch(self, kernel: Any, start: int, count: int, inputs: list[Any]) -> None:
+    def _launch(self, kernel: Any, slot: int, start: int, count: int, inputs: list[Any]) -> None:
+        """One launch over [start, start + count); ``slot`` tells apart the chunks of one call."""
         if count <= 0:
             return
         if self._recorded is None:
             wp.launch(kernel, dim=count, inputs=[start, *inputs], device=self.device)
             return
-        key = (kernel, start, count, *map(_key, inputs))
+        # The chunk bounds change from step to step (scatter blocks follow the pair counts), so
+        # they are not part of the key: a replay sets the offset and the dimension.
+        key = (kernel, slot, *map(_key, inputs))
         entry = self._recorded.get(key)
         if entry is None:
             if len(self._recorded) >= MAX_RECORDED:
                 self._recorded.clear()
             cmd = wp.launch(kernel, dim=count, inputs=[start, *inputs], device=self.device, record_cmd=True)
-            entry = self._recorded[key] = (cmd, inputs)
-        entry[0].launch()
+            entry = self._recorded[key] = [cmd, inputs, start, count]
+        cmd = entry[0]
+        if entry[2] != start:
+            cmd.set_param_at_index(0, start)
+            entry[2] = start
+        if entry[3] != count:
+            cmd.set_dim(count)
+            entry[3] = count
+        cmd.launch()
 
-    def _run(self, groups: list[list[tuple[int, int, list[Any]]]], kernel: Any) -> None:
+    def _run(self, groups: list[list[tuple[int, int, list[Any]]]], kernel: Any, slot_base: int = 0) -> None:
         """Run groups of (start, count, inputs) launches, one group per thread, the first here."""
         groups = [g for g in groups if g]
         if not groups:
             return
 
-        def run(group: list[tuple[int, int, list[Any]]]) -> None:
-            for start, count, inputs in group:
-                self._launch(kernel, start, count, inputs)
+        def run(group: list[tuple[int, int, list[Any]]], first_slot: int) -> None:
+            for k, (start, count, inputs) in enumerate(group):
+                self._launch(kernel, first_slot + k, start, count, inputs)
 
+        slots = (slot_base + np.cumsum([0] + [len(g) for g in groups])).tolist()
         if self._pool is None or len(groups) == 1:
-            for g in groups:
-                run(g)
+            for g, first in zip(groups, slots, strict=False):
+                run(g, first)
             return
-        futures = [self._pool.submit(run, g) for g in groups[1:]]
-        run(groups[0])
+        futures = [self._pool.submit(run, g, first) for g, first in zip(groups[1:], slots[1:], strict=False)]
+        run(groups[0], slots[0])
         for f in futures:
             f.result()
 
@@ -144,9 +157,9 @@ class Launcher:
         CUDA one launch covers all and the kernel's atomic adds resolve the conflicts.
         """
         self._load(kernel)
-        for phase in (blocks[0::2], blocks[1::2]):
+        for base, phase in ((0, blocks[0::2]), (len(blocks), blocks[1::2])):
             own = [phase[t::self.threads] for t in range(self.threads)]
-            self._run([[(start, count, inputs) for start, count in g] for g in own], kernel)
+            self._run([[(start, count, inputs) for start, count in g] for g in own], kernel, base)
 
     def close(self) -> None:
         """Stop the thread pool and drop recorded launches."""

@@ -163,29 +163,6 @@ def boundary_density(
     return acc
 
 
-@wp.kernel
-def predict_positions(
-    offset: int,
-    particle_x: wp.array(dtype=wp.vec3),
-    particle_v: wp.array(dtype=wp.vec3),
-    gravity: wp.vec3,
-    dt: float,
-    lo: wp.vec3,
-    hi: wp.vec3,
-    radius: float,
-    spheres: wp.array(dtype=wp.vec4),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    x_pred: wp.array(dtype=wp.vec3),
-):
-    """Explicit step under gravity: v* = v + dt g, x* = x + dt v*, projected out of solids."""
-    i = wp.tid() + offset
-    v = particle_v[i] + gravity * dt
-    v_out[i] = v
-    x_pred[i] = collide(particle_x[i] + v * dt, lo, hi, radius, spheres, box_lo, box_hi)
-
-
 @wp.func
 def cell_coord(p: wp.vec3, lo: wp.vec3, inv_cell: float, dims: wp.vec3i) -> wp.vec3i:
     """Integer cell of a point in the dense grid over the container (clamped to the grid)."""
@@ -204,25 +181,40 @@ def cell_linear(c: wp.vec3i, dims: wp.vec3i) -> int:
 
 
 @wp.kernel
-def compute_cell_keys(
+def predict_positions(
     offset: int,
-    x_pred: wp.array(dtype=wp.vec3),
+    particle_x: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    gravity: wp.vec3,
+    dt: float,
     lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
     inv_cell: float,
     dims: wp.vec3i,
     particle_id: wp.array(dtype=int),
     capacity: wp.int64,
+    v_out: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
     keys: wp.array(dtype=wp.int64),
     values: wp.array(dtype=int),
 ):
-    """Sort keys cell * capacity + id and values (particle index) for the radix sort.
+    """Explicit step under gravity (v* = v + dt g, x* = x + dt v*, projected out of solids), and
+    the radix-sort key cell * capacity + id of x* with the particle index as value.
 
     The id makes every key unique, so the order (and with it every floating-point sum over
     neighbours) depends only on positions and ids, not on the order particles sit in memory:
     a run resumed from a saved frame is bit-identical to an uninterrupted one.
     """
     i = wp.tid() + offset
-    cell = cell_linear(cell_coord(x_pred[i], lo, inv_cell, dims), dims)
+    v = particle_v[i] + gravity * dt
+    v_out[i] = v
+    x = collide(particle_x[i] + v * dt, lo, hi, radius, spheres, box_lo, box_hi)
+    x_pred[i] = x
+    cell = cell_linear(cell_coord(x, lo, inv_cell, dims), dims)
     keys[i] = wp.int64(cell) * capacity + wp.int64(particle_id[i])
     values[i] = i
 
@@ -247,18 +239,25 @@ def find_cell_starts(offset: int, sorted_keys: wp.array(dtype=wp.int64), n: int,
 
 
 @wp.kernel
-def gather_vec3(offset: int, order: wp.array(dtype=int), src: wp.array(dtype=wp.vec3),
-                dst: wp.array(dtype=wp.vec3)):
-    """dst[k] = src[order[k]]: reorder particles so neighbours are close in memory."""
+def gather_state(
+    offset: int,
+    order: wp.array(dtype=int),
+    particle_x: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_id: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    x_pred_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    id_out: wp.array(dtype=int),
+):
+    """Reorder the particle state into sorted (cell) order, so neighbours are close in memory."""
     k = wp.tid() + offset
-    dst[k] = src[order[k]]
-
-
-@wp.kernel
-def gather_int(offset: int, order: wp.array(dtype=int), src: wp.array(dtype=int), dst: wp.array(dtype=int)):
-    """dst[k] = src[order[k]] for integer attributes (particle ids)."""
-    k = wp.tid() + offset
-    dst[k] = src[order[k]]
+    src = order[k]
+    x_out[k] = particle_x[src]
+    x_pred_out[k] = x_pred[src]
+    v_out[k] = particle_v[src]
+    id_out[k] = particle_id[src]
 
 
 @wp.kernel

@@ -162,19 +162,16 @@ class PBFSolver:
         obstacles = [self.spheres, self.box_lo, self.box_hi]
         bounds = [self.lo, self.hi, self.radius]
         g = wp.vec3(*p.gravity)
-        launch(K.predict_positions, n, [self.particle_x, self.particle_v, g, self.dt, *bounds, *obstacles,
-                                        self.v_tmp, self.x_pred])
-
-        # Sort into cell order (stable radix sort), then one half neighbour list for all passes.
+        # Predict, then sort into cell order (radix sort of cell * capacity + id).
         grid = [self.lo, 1.0 / self.cell_width, self.grid_dims]
         cap = wp.int64(self.capacity)
-        launch(K.compute_cell_keys, n, [self.x_pred, *grid, self.particle_id, cap, self.cell_keys, self.order])
+        launch(K.predict_positions, n, [self.particle_x, self.particle_v, g, self.dt, *bounds, *obstacles,
+                                        *grid[1:], self.particle_id, cap,
+                                        self.v_tmp, self.x_pred, self.cell_keys, self.order])
         wp.utils.radix_sort_pairs(self.cell_keys, self.order, n, end_bit=self.key_bits)
         launch(K.find_cell_starts, n + 1, [self.cell_keys, n, cap, self.num_cells, self.cell_start])
-        launch(K.gather_vec3, n, [self.order, self.particle_x, self.x_sorted])
-        launch(K.gather_vec3, n, [self.order, self.x_pred, self.x_pred_other])
-        launch(K.gather_vec3, n, [self.order, self.v_tmp, self.particle_v])
-        launch(K.gather_int, n, [self.order, self.particle_id, self.id_sorted])
+        launch(K.gather_state, n, [self.order, self.particle_x, self.x_pred, self.v_tmp, self.particle_id,
+                                   self.x_sorted, self.x_pred_other, self.particle_v, self.id_sorted])
         self.particle_x, self.x_sorted = self.x_sorted, self.particle_x
         self.particle_id, self.id_sorted = self.id_sorted, self.particle_id
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
