@@ -274,6 +274,10 @@ def find_neighbours(
     neighbour_count: wp.array(dtype=int),
     neighbour_slots: wp.array(dtype=int),
     neighbour_span: wp.array(dtype=int),
+    cursor: wp.array(dtype=int),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
 ):
     """Half neighbour list: for each particle k, the neighbours j > k (sorted order) within h.
 
@@ -312,27 +316,15 @@ def find_neighbours(
                             last = j
     neighbour_count[k] = count
     neighbour_span[k] = last - k
-
-
-@wp.kernel
-def compact_neighbours(
-    offset: int,
-    neighbour_count: wp.array(dtype=int),
-    neighbour_slots: wp.array(dtype=int),
-    max_neighbours: int,
-    neighbour_start: wp.array(dtype=int),
-    neighbour_index: wp.array(dtype=int),
-):
-    """Copy each particle's slots into one packed (CSR) list, neighbour_start being the count prefix sum.
-
-    A pass over packed pairs streams through memory; over fixed-size slots each particle's few
-    pairs sit in their own 1 KB slot of a much larger array (measured 35% slower per pass).
-    """
-    i = wp.tid() + offset
-    b = neighbour_start[i]
-    s0 = i * max_neighbours
-    for s in range(neighbour_count[i]):
-        neighbour_index[b + s] = neighbour_slots[s0 + s]
+    # Pack the list: reserve count entries in this chunk's region (chunk offset x capacity) and
+    # copy the slots there while they are in cache. On the CPU a chunk runs its indices in order,
+    # so the packed lists follow particle order and a pair pass streams through memory (35%
+    # faster per pass than reading fixed-size slots); on CUDA the atomic keeps it correct.
+    b = offset * max_neighbours + wp.atomic_add(cursor, offset, count)
+    for s in range(count):
+        neighbour_index[b + s] = neighbour_slots[base + s]
+    neighbour_start[k] = b
+    neighbour_end[k] = b + count
 
 
 @wp.kernel
@@ -340,6 +332,7 @@ def density_pairs(
     offset: int,
     x_pred: wp.array(dtype=wp.vec3),
     neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     h: float,
     poly6_coef: float,
@@ -365,7 +358,7 @@ def density_pairs(
     grad_coef = spiky_coef * vol
     own = wp.vec4(0.0, 0.0, 0.0, 0.0)
     own_sq = float(0.0)
-    for p in range(neighbour_start[i], neighbour_start[i + 1]):
+    for p in range(neighbour_start[i], neighbour_end[i]):
         j = neighbour_index[p]
         gw = pair_weights(xi - x_pred[j], h, poly6_coef, grad_coef)
         g = wp.vec3(gw[0], gw[1], gw[2])
@@ -432,6 +425,7 @@ def correction_pairs(
     offset: int,
     particle_lambda: wp.array(dtype=float),
     neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     pair: wp.array(dtype=wp.vec4),
     acc_dp: wp.array(dtype=wp.vec3),
@@ -440,7 +434,7 @@ def correction_pairs(
     i = wp.tid() + offset
     li = particle_lambda[i]
     own = wp.vec3(0.0, 0.0, 0.0)
-    for p in range(neighbour_start[i], neighbour_start[i + 1]):
+    for p in range(neighbour_start[i], neighbour_end[i]):
         q = pair[p]
         j = neighbour_index[p]
         t = wp.vec3(q[0], q[1], q[2]) * (li + particle_lambda[j] + q[3])
@@ -462,9 +456,14 @@ def correction_finish(
     spheres: wp.array(dtype=wp.vec4),
     box_lo: wp.array(dtype=wp.vec3),
     box_hi: wp.array(dtype=wp.vec3),
+    particle_x: wp.array(dtype=wp.vec3),
+    inv_dt: float,
+    last: int,
     x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
 ):
-    """x_i + dp_i (pairs plus walls, at most r long), then collisions."""
+    """x_i + dp_i (pairs plus walls, at most r long), then collisions; after the last iteration
+    also the velocity v = (x* - x) / dt."""
     i = wp.tid() + offset
     dp = acc_dp[i] + wall_grad[i] * particle_lambda[i]
     # A correction longer than a particle radius only happens when particles are jammed against
@@ -472,20 +471,10 @@ def correction_finish(
     dl = wp.length(dp)
     if dl > radius:
         dp = dp * (radius / dl)
-    x_out[i] = collide(x_pred[i] + dp, lo, hi, radius, spheres, box_lo, box_hi)
-
-
-@wp.kernel
-def update_velocity(
-    offset: int,
-    particle_x: wp.array(dtype=wp.vec3),
-    x_pred: wp.array(dtype=wp.vec3),
-    inv_dt: float,
-    v_out: wp.array(dtype=wp.vec3),
-):
-    """v = (x* - x) / dt."""
-    i = wp.tid() + offset
-    v_out[i] = (x_pred[i] - particle_x[i]) * inv_dt
+    x = collide(x_pred[i] + dp, lo, hi, radius, spheres, box_lo, box_hi)
+    x_out[i] = x
+    if last != 0:
+        v_out[i] = (x - particle_x[i]) * inv_dt
 
 
 @wp.kernel
@@ -494,6 +483,7 @@ def vorticity_pairs(
     x_pred: wp.array(dtype=wp.vec3),
     particle_v: wp.array(dtype=wp.vec3),
     neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     h: float,
     poly6_coef: float,
@@ -511,7 +501,7 @@ def vorticity_pairs(
     xi = x_pred[i]
     vi = particle_v[i]
     own = wp.vec3(0.0, 0.0, 0.0)
-    for p in range(neighbour_start[i], neighbour_start[i + 1]):
+    for p in range(neighbour_start[i], neighbour_end[i]):
         j = neighbour_index[p]
         gw = pair_weights(xi - x_pred[j], h, poly6_coef, spiky_coef)
         # grad with respect to p_j of W(p_i - p_j) is minus the gradient with respect to p_i
@@ -536,6 +526,7 @@ def viscosity_pairs(
     omega_length: wp.array(dtype=float),
     particle_rho: wp.array(dtype=float),
     neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
     mass: float,
     pair: wp.array(dtype=wp.vec4),
@@ -549,7 +540,7 @@ def viscosity_pairs(
     voli = mass / particle_rho[i]
     own_eta = wp.vec3(0.0, 0.0, 0.0)
     own_visc = wp.vec3(0.0, 0.0, 0.0)
-    for p in range(neighbour_start[i], neighbour_start[i + 1]):
+    for p in range(neighbour_start[i], neighbour_end[i]):
         j = neighbour_index[p]
         q = pair[p]
         g = wp.vec3(q[0], q[1], q[2])

@@ -93,7 +93,9 @@ class PBFSolver:
         self.neighbour_count = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_span = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_slots = wp.zeros(cap * nb, dtype=int, device=dev)
-        self.neighbour_start = wp.zeros(cap + 1, dtype=int, device=dev)  # [0] stays 0
+        self.neighbour_start = wp.zeros(cap, dtype=int, device=dev)
+        self.neighbour_end = wp.zeros(cap, dtype=int, device=dev)
+        self.neighbour_cursor = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
         self.pair = wp.zeros(cap * nb, dtype=wp.vec4, device=dev)
         self.wall_grad = vec()
@@ -175,19 +177,22 @@ class PBFSolver:
         self.particle_x, self.x_sorted = self.x_sorted, self.particle_x
         self.particle_id, self.id_sorted = self.id_sorted, self.particle_id
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
+        self.neighbour_cursor.zero_()
         launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
-                                      self.neighbour_count, self.neighbour_slots, self.neighbour_span])
-        wp.utils.array_scan(self.neighbour_count[:n], self.neighbour_start[1:n + 1], inclusive=True)
-        launch(K.compact_neighbours, n, [self.neighbour_count, self.neighbour_slots, p.max_neighbours,
-                                         self.neighbour_start, self.neighbour_index])
-        nb = [self.neighbour_start, self.neighbour_index]
+                                      self.neighbour_count, self.neighbour_slots, self.neighbour_span,
+                                      self.neighbour_cursor, self.neighbour_start, self.neighbour_end,
+                                      self.neighbour_index])
+        nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
         # Blocks for the pair passes: how far past itself a particle's pairs reach bounds their
         # size, the pair counts balance them (CPU only; on CUDA atomics make one launch safe).
-        blocks = launch.scatter_blocks(n, int(self.neighbour_span.numpy()[:n].max()),
-                                       self.neighbour_start.numpy()) if launch.cpu else [(0, n)]
+        blocks = [(0, n)]
+        if launch.cpu:
+            counts = self.neighbour_count.numpy()[:n]
+            blocks = launch.scatter_blocks(n, int(self.neighbour_span.numpy()[:n].max()),
+                                           np.concatenate([[0], np.cumsum(counts)]))
 
         vol = self.mass / p.rest_density
-        for _ in range(p.iterations):
+        for it in range(p.iterations):
             self.acc4.zero_()
             self.acc1.zero_()
             launch.scatter(K.density_pairs, blocks, [
@@ -202,10 +207,9 @@ class PBFSolver:
             launch.scatter(K.correction_pairs, blocks, [self.particle_lambda, *nb, self.pair, self.acc3a])
             launch(K.correction_finish, n, [
                 self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds, *obstacles,
-                self.x_pred_other])
+                self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1), self.x_pred_other, self.v_tmp])
             self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
 
-        launch(K.update_velocity, n, [self.particle_x, self.x_pred, 1.0 / self.dt, self.v_tmp])
         self.particle_omega.zero_()
         launch.scatter(K.vorticity_pairs, blocks, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef,
                                               self.spiky_coef, vol, self.pair, self.particle_omega])
