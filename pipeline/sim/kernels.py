@@ -18,6 +18,47 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+# Unchecked element access for the pair loops. Warp's a[i] wraps negative indices (a shift, an
+# and and an add per access); these loops index arrays tens of millions of times per step with
+# indices known to be valid, and the plain pointer access measured 16% faster on the density
+# pass, bit for bit the same result. Contiguous 1D arrays only (every array here is).
+# ``wp::atomic_add`` is a plain add on the CPU and an atomic on CUDA.
+@wp.func_native("return a.data[i];")
+def load_int(a: wp.array(dtype=int), i: int) -> int: ...
+
+
+@wp.func_native("return a.data[i];")
+def load_float(a: wp.array(dtype=float), i: int) -> float: ...
+
+
+@wp.func_native("return a.data[i];")
+def load_vec3(a: wp.array(dtype=wp.vec3), i: int) -> wp.vec3: ...
+
+
+@wp.func_native("return a.data[i];")
+def load_vec4(a: wp.array(dtype=wp.vec4), i: int) -> wp.vec4: ...
+
+
+@wp.func_native("a.data[i] = v;")
+def store_int(a: wp.array(dtype=int), i: int, v: int): ...
+
+
+@wp.func_native("a.data[i] = v;")
+def store_vec4(a: wp.array(dtype=wp.vec4), i: int, v: wp.vec4): ...
+
+
+@wp.func_native("wp::atomic_add(a.data + i, v);")
+def add_float(a: wp.array(dtype=float), i: int, v: float): ...
+
+
+@wp.func_native("wp::atomic_add(a.data + i, v);")
+def add_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
+
+
+@wp.func_native("wp::atomic_add(a.data + i, v);")
+def add_vec4(a: wp.array(dtype=wp.vec4), i: int, v: wp.vec4): ...
+
+
 @wp.func
 def pair_weights(r: wp.vec3, h: float, poly6_coef: float, grad_coef: float) -> wp.vec4:
     """Spiky gradient and poly6 value of one pair, (grad xyz, W), without branches.
@@ -309,9 +350,9 @@ def find_neighbours(
                 if dz == 0 and y == c[1]:
                     first = k + 1
                 for j in range(first, cell_start[row + x1 + 1]):
-                    if wp.length_sq(x_pred[j] - xk) < h2:
+                    if wp.length_sq(load_vec3(x_pred, j) - xk) < h2:
                         if count < max_neighbours:
-                            neighbour_slots[base + count] = j
+                            store_int(neighbour_slots, base + count, j)
                             count += 1
                             last = j
     neighbour_count[k] = count
@@ -322,7 +363,7 @@ def find_neighbours(
     # faster per pass than reading fixed-size slots); on CUDA the atomic keeps it correct.
     b = offset * max_neighbours + wp.atomic_add(cursor, offset, count)
     for s in range(count):
-        neighbour_index[b + s] = neighbour_slots[base + s]
+        store_int(neighbour_index, b + s, load_int(neighbour_slots, base + s))
     neighbour_start[k] = b
     neighbour_end[k] = b + count
 
@@ -359,16 +400,16 @@ def density_pairs(
     own = wp.vec4(0.0, 0.0, 0.0, 0.0)
     own_sq = float(0.0)
     for p in range(neighbour_start[i], neighbour_end[i]):
-        j = neighbour_index[p]
-        gw = pair_weights(xi - x_pred[j], h, poly6_coef, grad_coef)
+        j = load_int(neighbour_index, p)
+        gw = pair_weights(xi - load_vec3(x_pred, j), h, poly6_coef, grad_coef)
         g = wp.vec3(gw[0], gw[1], gw[2])
         w = gw[3]
         gg = wp.dot(g, g)
         mw = mass * w
         own += wp.vec4(g[0], g[1], g[2], mw)
         own_sq += gg
-        wp.atomic_add(acc, j, wp.vec4(-g[0], -g[1], -g[2], mw))
-        wp.atomic_add(acc_sq, j, gg)
+        add_vec4(acc, j, wp.vec4(-g[0], -g[1], -g[2], mw))
+        add_float(acc_sq, j, gg)
         scorr = float(0.0)
         if corr_k > 0.0:
             ratio = w * inv_corr_w_dq
@@ -380,7 +421,7 @@ def density_pairs(
                 for _e in range(corr_n):
                     scorr = scorr * ratio
                 scorr = -corr_k * scorr
-        pair[p] = wp.vec4(g[0], g[1], g[2], scorr)
+        store_vec4(pair, p, wp.vec4(g[0], g[1], g[2], scorr))
     wp.atomic_add(acc, i, own)
     wp.atomic_add(acc_sq, i, own_sq)
 
@@ -435,11 +476,11 @@ def correction_pairs(
     li = particle_lambda[i]
     own = wp.vec3(0.0, 0.0, 0.0)
     for p in range(neighbour_start[i], neighbour_end[i]):
-        q = pair[p]
-        j = neighbour_index[p]
-        t = wp.vec3(q[0], q[1], q[2]) * (li + particle_lambda[j] + q[3])
+        q = load_vec4(pair, p)
+        j = load_int(neighbour_index, p)
+        t = wp.vec3(q[0], q[1], q[2]) * (li + load_float(particle_lambda, j) + q[3])
         own += t
-        wp.atomic_add(acc_dp, j, -t)
+        add_vec3(acc_dp, j, -t)
     wp.atomic_add(acc_dp, i, own)
 
 
@@ -502,13 +543,13 @@ def vorticity_pairs(
     vi = particle_v[i]
     own = wp.vec3(0.0, 0.0, 0.0)
     for p in range(neighbour_start[i], neighbour_end[i]):
-        j = neighbour_index[p]
-        gw = pair_weights(xi - x_pred[j], h, poly6_coef, spiky_coef)
+        j = load_int(neighbour_index, p)
+        gw = pair_weights(xi - load_vec3(x_pred, j), h, poly6_coef, spiky_coef)
         # grad with respect to p_j of W(p_i - p_j) is minus the gradient with respect to p_i
-        term = wp.cross(particle_v[j] - vi, -wp.vec3(gw[0], gw[1], gw[2])) * vol
+        term = wp.cross(load_vec3(particle_v, j) - vi, -wp.vec3(gw[0], gw[1], gw[2])) * vol
         own += term
-        wp.atomic_add(acc_omega, j, term)
-        pair[p] = gw
+        add_vec3(acc_omega, j, term)
+        store_vec4(pair, p, gw)
     wp.atomic_add(acc_omega, i, own)
 
 
@@ -541,17 +582,17 @@ def viscosity_pairs(
     own_eta = wp.vec3(0.0, 0.0, 0.0)
     own_visc = wp.vec3(0.0, 0.0, 0.0)
     for p in range(neighbour_start[i], neighbour_end[i]):
-        j = neighbour_index[p]
-        q = pair[p]
+        j = load_int(neighbour_index, p)
+        q = load_vec4(pair, p)
         g = wp.vec3(q[0], q[1], q[2])
-        volj = mass / particle_rho[j]
-        dw = omega_length[j] - wi
-        dv = particle_v[j] - vi
+        volj = mass / load_float(particle_rho, j)
+        dw = load_float(omega_length, j) - wi
+        dv = load_vec3(particle_v, j) - vi
         own_eta += g * (dw * volj)
         own_visc += dv * (q[3] * volj)
         # for j the gradient and both differences flip sign
-        wp.atomic_add(acc_eta, j, g * (dw * voli))
-        wp.atomic_add(acc_visc, j, dv * (-q[3] * voli))
+        add_vec3(acc_eta, j, g * (dw * voli))
+        add_vec3(acc_visc, j, dv * (-q[3] * voli))
     wp.atomic_add(acc_eta, i, own_eta)
     wp.atomic_add(acc_visc, i, own_visc)
 
