@@ -97,6 +97,16 @@ def test_emitter_adds_the_configured_count():
     solver.close()
 
 
+def test_emitter_starting_later_leaves_the_first_frames_empty():
+    emitter = Emitter(position=(0.2, 0.45, 0.15), direction=(0, -1, 0), radius=0.04, speed=1.0, start=0.1, end=0.2)
+    params = SimulateConfig(particle_radius=0.0125, frames=9, fps=30.0, substeps=4)
+    solver = PBFSolver(_scene(emitters=(emitter,)), params, "cpu", seed=0)
+    counts = [solver.advance_frame(f).particles for f in range(1, 10)]
+    solver.close()
+    assert counts[0] == 0 and counts[-1] == solver.capacity > 0
+    assert counts == sorted(counts)
+
+
 def test_same_seed_same_frames():
     scene = _scene(fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.12, 0.25, 0.3)),))
     params = SimulateConfig(particle_radius=0.0125, frames=5)

@@ -161,6 +161,9 @@ class PBFSolver:
         if len(x_new):
             self._append(x_new, v_new)
             n = self.n
+        if n == 0:  # an emitter that has not started yet
+            self.step_index += 1
+            return
         obstacles = [self.spheres, self.box_lo, self.box_hi]
         bounds = [self.lo, self.hi, self.radius]
         g = wp.vec3(*p.gravity)
@@ -212,12 +215,12 @@ class PBFSolver:
 
         self.particle_omega.zero_()
         launch.scatter(K.vorticity_pairs, blocks, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef,
-                                              self.spiky_coef, vol, self.pair, self.particle_omega])
+                                                   self.spiky_coef, vol, self.pair, self.particle_omega])
         launch(K.vector_length, n, [self.particle_omega, self.acc1])
         self.acc3a.zero_()
         self.acc3b.zero_()
         launch.scatter(K.viscosity_pairs, blocks, [self.v_tmp, self.acc1, self.particle_rho, *nb, self.mass,
-                                              self.pair, self.acc3a, self.acc3b])
+                                                   self.pair, self.acc3a, self.acc3b])
         launch(K.viscosity_finish, n, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b,
                                        p.vorticity_epsilon, p.xsph_viscosity, self.dt, self.particle_v])
         self.particle_x, self.x_pred = self.x_pred, self.particle_x
