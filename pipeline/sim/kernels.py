@@ -8,8 +8,9 @@ the particle volume V = m / rho_0 so every constant keeps SI units.
 Every kernel takes ``offset`` first: the host launches chunks of the index range from a thread
 pool (Warp releases the GIL and runs a CPU launch on one core). The neighbour list is a half list
 (each pair once, at its lower index); the ``*_pairs`` kernels add each pair's share to both of its
-particles, which on the CPU is race-free under the two-phase block launch of ``Launcher.scatter``
-and on CUDA uses atomics. ``*_finish`` kernels then turn the sums into per-particle results.
+particles, which on the CPU is race-free (and order-fixed) under the two-phase block launch of
+``Launcher.scatter`` and on CUDA uses atomics, whose float sums land in any order (GPU runs agree
+to rounding only). ``*_finish`` kernels then turn the sums into per-particle results.
 Kernels are kept apart from the driver so that editing the driver does not recompile them.
 """
 
