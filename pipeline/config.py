@@ -207,7 +207,8 @@ class SimulateConfig:
     max_speed: float = _f(50.0, gt=0.0)
     """Speed above which the run is declared blown up (m/s)."""
     max_neighbours: int = _f(64, ge=8)
-    """Neighbour-list capacity per particle."""
+    """Capacity of a particle's half neighbour list: the neighbours after it in sorted order, about
+    half of all its neighbours (a full neighbourhood at rest density holds about 30)."""
     threads: int = _f(0, ge=0)
     """CPU threads for chunked kernel launches (0: one per core)."""
 

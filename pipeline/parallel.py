@@ -55,7 +55,7 @@ class Launcher:
         self.cpu = not str(device).startswith("cuda")
         self._loaded: set = set()
         self._pool = ThreadPoolExecutor(self.threads - 1) if self.cpu and self.threads > 1 else None
-        # Recorded launches by (kernel, start, count, argument keys). Each entry keeps its inputs
+        # Recorded launches by (kernel, chunk slot, argument keys). Each entry keeps its inputs
         # alive, so an array's id cannot be reused by another array while its entry exists.
         self._recorded: dict | None = {} if reuse else None
 
