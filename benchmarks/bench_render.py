@@ -1,12 +1,19 @@
-"""Render costs per frame: screen-space inputs, refiner, shading and EXR write at 512^2 and 1024^2,
-and the wall time of ``make demo`` from a clean cache.
+"""Render costs per frame on this machine: each stage of the refined method at 256 to 2048 pixels,
+for small and large projected particles, the refiner against a plain forward pass of the same
+weights, a pipelined frame loop (EXR writing overlapped with the next frame), and optionally the
+wall time of ``make demo`` from a clean cache.
 
-    .venv/bin/python benchmarks/bench_render.py [--demo]
+Frames: the SPlisHSPlasH dam break (6,859 particles, r = 25 mm: large on screen) and a PBF dam
+break of 49,140 particles (r = 7.4 mm: small on screen), each framed whole by the camera.
+
+    .venv/bin/python benchmarks/bench_render.py [--sizes 256 512 1024 2048] [--plot docs/render_costs.png]
+                                                [--demo] [--exact]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import subprocess
@@ -16,49 +23,155 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 import warp as wp
 
-from pipeline.camera import Camera, look_at
-from pipeline.config import RenderConfig, load
-from pipeline.exr import write_exr
-from pipeline.model.trainer import load_generator
-from pipeline.parallel import Launcher
-from pipeline.particles import read_particles
-from pipeline.render import normal_source, shade_frame
-from pipeline.screen import ScreenSpace
-from pipeline.shading import Shader
-from pipeline.shading.background import BackgroundRenderer
-from pipeline.timing import Timings
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
+
+from pipeline.config import DatasetConfig, RenderConfig  # noqa: E402
+from pipeline.exr import write_exr  # noqa: E402
+from pipeline.model.data import make_input  # noqa: E402
+from pipeline.model.inference import Refiner  # noqa: E402
+from pipeline.model.trainer import load_generator, predict  # noqa: E402
+from pipeline.parallel import Launcher  # noqa: E402
+from pipeline.particles import read_particles  # noqa: E402
+from pipeline.render import normal_source, shade_frame  # noqa: E402
+from pipeline.screen import ScreenSpace  # noqa: E402
+from pipeline.shading import Shader  # noqa: E402
+from pipeline.timing import Timings  # noqa: E402
+from pipeline.views import screen_space_inputs  # noqa: E402
+from pipeline.writer import BackgroundWriter  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+STAGES = ("splat", "bilateral", "normals", "refiner", "shading", "exr")
+
+
+def _best_ms(fn, repeat: int) -> float:
+    """Median of ``repeat`` timed calls after one warm-up (ms)."""
+    fn()
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000 * float(np.median(times))
+
+
+def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpace, launch: Launcher,
+            shader: Shader, refiner: Refiner, generator, repeat: int, tmp: Path) -> dict[str, float]:
+    """Per-stage medians (ms) of one frame at one size, plus the plain forward pass and a pipelined loop."""
+    cam = _camera_for(x, size)
+    rp = RenderConfig(width=size, height=size)
+    bg = np.full((size, size, 3), 0.5, np.float32)
+    bg_depth = np.full((size, size), 10.0, np.float32)
+    t = Timings()
+    src = {}
+
+    def frame(write: BackgroundWriter | None = None) -> None:
+        src.update(normal_source("refined", x, r, cam, p, ss, launch, refiner, timings=t))
+        out = shade_frame(src, bg, bg_depth, cam, rp, shader, t)
+        if write is not None:
+            write.submit(write_exr, tmp / "frame.exr", out.channels())
+        else:
+            with t("exr"):
+                write_exr(tmp / "frame.exr", out.channels())
+
+    frame()
+    t = Timings()
+    for _ in range(repeat):
+        frame()
+    row = {k: t.mean_ms(k) for k in ("splat", "bilateral", "normals", "refiner", "shading", "exr", "inputs")}
+    inputs = make_input(screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",)))
+    row["plain_refiner"] = _best_ms(lambda: predict(generator, inputs), max(1, repeat // 2))
+    row["fast_refiner_nocrop"] = _best_ms(lambda: refiner(inputs), max(1, repeat // 2))
+    # the render loop as the stage runs it: EXR writing on a background thread
+    n = max(3, repeat)
+    with BackgroundWriter() as writer:
+        frame(writer)
+        start = time.perf_counter()
+        for _ in range(n):
+            frame(writer)
+        writer.drain()
+        row["pipelined_frame"] = 1000 * (time.perf_counter() - start) / n
+    row["rp_px"] = float(np.median(cam.focal_px * r / src["depth"][src["depth"] > 0])) if src["mask"].any() else 0.0
+    return row
+
+
+def plot(results: dict, path: Path) -> None:
+    """Log-log ms per stage against pixel count, one panel per frame."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 4.5), squeeze=False)
+    for ax, (name, rows) in zip(axes[0], results.items(), strict=True):
+        sizes = sorted(int(s) for s in rows)
+        px = [s * s for s in sizes]
+        for key in (*STAGES, "plain_refiner"):
+            style = "--" if key == "plain_refiner" else "-"
+            ax.loglog(px, [rows[str(s)][key] for s in sizes], style, marker="o", label=key.replace("_", " "))
+        linear = [rows[str(sizes[0])]["inputs"] * n / px[0] for n in px]
+        ax.loglog(px, linear, ":", color="gray", label="linear in pixels")
+        ax.set_title(f"{name}")
+        ax.set_xlabel("pixels per frame")
+        ax.set_ylabel("ms per frame")
+        ax.set_xticks(px, [f"{s}^2" for s in sizes])
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(f"render stages per frame, {torch.get_num_threads()} CPU threads")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--exact", action="store_true", help="the exact (pre-2026-11) filters instead of the fast")
+    parser.add_argument("--plot", type=Path, help="write a log-log plot of the stage costs here")
+    parser.add_argument("--json", type=Path, help="write the figures as JSON here")
     parser.add_argument("--demo", action="store_true", help="also time `make demo` in a fresh cache")
     args = parser.parse_args()
     wp.config.quiet = True
-    loaded = load(ROOT / "configs" / "default.yaml")
-    x = read_particles(ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo").positions
-    r = 0.025
+    p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
     generator, _ = load_generator(ROOT / "pipeline" / "weights" / "refiner.pt")
+    refiner = Refiner(generator)
     ss, launch, shader = ScreenSpace("cpu"), Launcher("cpu"), Shader("cpu")
-    centre = (x.min(0) + x.max(0)) / 2
-    print(f"{'size':>6s} {'inputs':>8s} {'refiner':>8s} {'shading':>8s} {'exr':>8s} {'total':>8s}  (ms per frame)")
-    for size in (512, 1024):
-        cam = Camera(look_at(centre + np.array([0.0, 0.8, 2.6]), centre), 40.0, size, size)
-        p = RenderConfig(width=size, height=size)
-        bg = BackgroundRenderer(loaded.imported["splishsplash_dam_break"], p, size, size)
-        colour, depth = bg.render(cam)
-        t = Timings()
-        for _ in range(3):
-            src = normal_source("refined", x, r, cam, loaded.config.dataset, ss, launch, generator, timings=t)
-            frame = shade_frame(src, colour, depth, cam, p, shader, t)
-            with tempfile.TemporaryDirectory() as tmp, t("exr"):
-                write_exr(Path(tmp) / "frame_0001.exr", frame.channels())
-        bg.close()
-        parts = [t.mean_ms("inputs"), t.mean_ms("refiner"), t.mean_ms("shading"), t.mean_ms("exr")]
-        print(f"{size:6d} {parts[0]:8.1f} {parts[1]:8.1f} {parts[2]:8.1f} {parts[3]:8.1f} {sum(parts):8.1f}")
+    bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
+    x_pbf, r_pbf = _pbf_frame(50_000)
+    frames = {"SPlisHSPlasH dam break, 6,859 particles (large)": (read_particles(bgeo).positions, 0.025),
+              f"PBF dam break, {len(x_pbf):,} particles (small)": (x_pbf, r_pbf)}
+    results: dict[str, dict[str, dict[str, float]]] = {}
+    print(f"filters: {p.filter_mode}; {torch.get_num_threads()} torch threads; ms per frame (medians)")
+    head = (f"{'size':>5s} {'r_px':>5s} {'splat':>6s} {'bilat':>6s} {'normal':>6s} {'inputs':>7s} {'shade':>6s} "
+            f"{'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'nocrop':>7s} {'plain':>7s} "
+            f"{'speed-up':>8s}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, (x, r) in frames.items():
+            print(f"\n{name}\n{head}")
+            results[name] = {}
+            for size in args.sizes:
+                repeat = args.repeat if size <= 1024 else max(2, args.repeat // 2)
+                row = measure(x, r, size, p, ss, launch, shader, refiner, generator, repeat, Path(tmp))
+                results[name][str(size)] = row
+                print(f"{size:5d} {row['rp_px']:5.1f} {row['splat']:6.1f} {row['bilateral']:6.1f} "
+                      f"{row['normals']:6.1f} {row['inputs']:7.1f} {row['shading']:6.1f} {row['exr']:6.1f} "
+                      f"{row['inputs'] + row['shading'] + row['exr']:9.1f} {row['pipelined_frame']:9.1f} "
+                      f"{row['refiner']:8.1f} {row['fast_refiner_nocrop']:7.1f} {row['plain_refiner']:7.1f} "
+                      f"{row['plain_refiner'] / row['refiner']:7.2f}x", flush=True)
+    print("\ninputs = splat + filter + normals + copies; refiner = folded, channels-last, cropped to the fluid "
+          "(nocrop: whole image); plain = the training-time module's forward pass; pipelined = a frame of the "
+          "render loop, inputs + refiner + shading with the EXR written on a background thread")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    if args.plot:
+        plot(results, args.plot)
+        print(f"plot: {args.plot}")
+    ss.close()
+    launch.close()
+    shader.close()
     if args.demo:
         with tempfile.TemporaryDirectory() as tmp:
             config = Path(tmp) / "demo.yaml"

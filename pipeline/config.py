@@ -225,6 +225,14 @@ class DatasetConfig:
     """Use every n-th simulated frame."""
     max_frames: int = _f(0, ge=0)
     """Use at most this many frames per scene (0: all)."""
+    filter_mode: Literal["fast", "exact"] = "fast"
+    """'fast': the bilateral filter as two separable passes (cost linear in its radius) and
+    narrow-range passes with at most ``nrf_max_taps`` taps a side (cost independent of the
+    projected particle size); 'exact': the brute-force 2D bilateral window and narrow-range passes
+    that read every pixel of their radius (the filters before 2026-11, slow at high resolution)."""
+    nrf_max_taps: int = _f(16, ge=1)
+    """'fast' mode: most taps on each side of a narrow-range pass; wider kernels sample every k-th
+    pixel (the 2D clean-up pass removes the pixel-scale noise this leaves)."""
     bilateral_sigma_px_scale: float = _f(2.0, gt=0.0)
     """Bilateral spatial sigma as a multiple of the projected particle radius (px / px)."""
     bilateral_range_radii: float = _f(6.0, gt=0.0)

@@ -128,6 +128,14 @@ class Launcher:
         self._load(kernel)
         self._run([(start, count, inputs) for start, count in self.split(n)], kernel)
 
+    def tasks(self, kernel: Any, n: int, inputs_per_task: list[list[Any]]) -> None:
+        """Launch the whole range [0, n) once per entry of ``inputs_per_task``, the launches spread
+        over the threads; each must write its own outputs (e.g. its own band of image rows)."""
+        if n <= 0:
+            return
+        self._load(kernel)
+        self._run([(0, n, inputs) for inputs in inputs_per_task], kernel)
+
     def map(self, kernel: Any, n: int, inputs_for_chunk: Any) -> int:
         """Launch chunks with per-chunk inputs (``inputs_for_chunk(c)``), e.g. a private output
         buffer per chunk for scatter kernels that would otherwise race. Returns the chunk count."""

@@ -14,7 +14,7 @@ import numpy as np
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig, RenderConfig
 from pipeline.model.data import make_input
-from pipeline.model.trainer import predict
+from pipeline.model.inference import Refiner
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
@@ -43,21 +43,22 @@ class RenderedFrame:
         return out
 
 
-def refine(generator, channels: dict[str, np.ndarray], auxiliary: bool = True,
+def refine(refiner: Refiner, channels: dict[str, np.ndarray], auxiliary: bool = True,
            threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Refined unit normals and their fluid mask from a view's screen-space channels.
 
     Pixels whose predicted normal is shorter than ``threshold`` are dropped as noise (Choi et al.,
     section 3.3), and so are pixels without splatted fluid (there is no depth to shade there).
     """
-    n = predict(generator, make_input(channels, auxiliary))
+    fluid = channels["A"] > 0
+    n = refiner(make_input(channels, auxiliary), fluid)
     length = np.linalg.norm(n, axis=-1)
-    mask = (length >= threshold) & (channels["A"] > 0)
+    mask = (length >= threshold) & fluid
     return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
 
 
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
-                  ss: ScreenSpace, launch: Launcher, generator=None, threshold: float = 0.5,
+                  ss: ScreenSpace, launch: Launcher, refiner: Refiner | None = None, threshold: float = 0.5,
                   auxiliary: bool = True, timings: Timings | None = None) -> dict[str, np.ndarray]:
     """Normals, depth, mask and thickness of a method for one view."""
     t = timings or Timings()
@@ -68,10 +69,10 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
     thickness = ch["thickness"]
     if method == "refined":
-        if generator is None:
+        if refiner is None:
             raise ValueError("the refined method needs a generator")
         with t("refiner"):
-            n, mask = refine(generator, ch, auxiliary, threshold)
+            n, mask = refine(refiner, ch, auxiliary, threshold)
         return {"normals": n, "depth": np.where(mask, ch["bilateral.Z"], 0.0),
                 "mask": mask.astype(np.float32), "thickness": thickness}
     if method == "mesh":

@@ -12,11 +12,10 @@ import numpy as np
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
-from pipeline.screen import ScreenSpace
+from pipeline.screen import FILTERS, ScreenSpace
 from pipeline.surface import SurfaceMesh, render_maps
 from pipeline.timing import Timings
 
-FILTERS = ("gaussian", "bilateral", "nrf")
 AXES = ("X", "Y", "Z")
 
 
@@ -29,22 +28,9 @@ def screen_space_inputs(positions: np.ndarray, radius: float, camera: Camera, p:
                         ss: ScreenSpace, timings: Timings | None = None,
                         filters: tuple[str, ...] = FILTERS) -> dict[str, np.ndarray]:
     """Splat, filter and differentiate: the screen-space channels of one view."""
-    t = timings or Timings()
-    with t("splat"):
-        sp = ss.splat(positions, radius, camera)
-    out = {"Z": sp.depth, "A": sp.mask, "thickness": sp.thickness}
+    out = ss.inputs(positions, radius, camera, p, filters, timings)
     for name in filters:
-        with t(name):
-            if name == "gaussian":
-                d = ss.gaussian(sp.depth, p.gaussian_sigma_px)
-            elif name == "bilateral":
-                d = ss.bilateral(sp.depth, camera, radius, p)
-            else:
-                d = ss.narrow_range(sp.depth, camera, radius, p)
-        with t("normals"):
-            n = ss.normals(d, camera)
-        out[f"{name}.Z"] = d
-        out.update(normal_channels(f"{name}.", n))
+        out.update(normal_channels(f"{name}.", out.pop(f"{name}.N")))
     return out
 
 

@@ -36,7 +36,8 @@ from stages import dataset, render, simulate
 from stages.common import Run, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
-MODULES = ("pipeline.metrics", "pipeline.render", "pipeline.shading", "stages.evaluate")
+MODULES = ("pipeline.metrics", "pipeline.render", "pipeline.shading", "pipeline.screen", "pipeline.model",
+           "stages.evaluate")
 TIMED_FRAMES = 3
 
 
@@ -53,17 +54,17 @@ def sequences(run: Run) -> list[tuple[SceneConfig, str]]:
     return out
 
 
-def _method_maps(method: str, ch: dict, generator, auxiliary: bool, threshold: float):
+def _method_maps(method: str, ch: dict, refiner, auxiliary: bool, threshold: float):
     """(normals, mask, depth) of a method from a dataset frame's channels."""
     if method == "refined":
-        n, mask = refine(generator, ch, auxiliary, threshold)
+        n, mask = refine(refiner, ch, auxiliary, threshold)
         return n, mask, ch["bilateral.Z"]
     if method == "mesh":
         return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
     return stack(ch, f"{method}.N."), ch["A"] > 0, ch[f"{method}.Z"]
 
 
-def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, generator, auxiliary: bool,
+def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner, auxiliary: bool,
                       methods: tuple[str, ...]) -> dict:
     """Per-method metrics of one held-out sequence, plus per-frame errors for the figures."""
     p, rp = run.config.evaluate, run.config.render
@@ -90,7 +91,7 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, generator,
             bg = shader.fill_sky(bg, bg_depth, cam, rp)
             target = stack(ch, "target.N.")
             t_mask = ch["target.A"] > 0
-            maps = {m: _method_maps(m, ch, generator, auxiliary, rp.normal_threshold) for m in (*methods, "mesh")}
+            maps = {m: _method_maps(m, ch, refiner, auxiliary, rp.normal_threshold) for m in (*methods, "mesh")}
             shaded = {}
             for m, (n, mask, depth) in maps.items():
                 src = {"normals": n.astype(np.float32), "depth": np.where(mask, depth, 0).astype(np.float32),
@@ -111,7 +112,7 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, generator,
     finally:
         background.close()
         shader.close()
-    timings = time_methods(run, scene, camera_path, (*methods, "mesh"), generator, auxiliary)
+    timings = time_methods(run, scene, camera_path, (*methods, "mesh"), refiner, auxiliary)
     result = {}
     for m in methods:
         steps = np.abs(np.diff(np.array(per_frame[m])))
@@ -126,7 +127,7 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, generator,
             "examples": examples}
 
 
-def time_methods(run: Run, scene: SceneConfig, camera_path: str, methods, generator, auxiliary) -> dict[str, float]:
+def time_methods(run: Run, scene: SceneConfig, camera_path: str, methods, refiner, auxiliary) -> dict[str, float]:
     """Wall milliseconds per frame of each method from particles to its normal map (first frames)."""
     sim = simulate.ensure(run, scene)
     info = read_sequence_info(sim.dir)
@@ -141,7 +142,7 @@ def time_methods(run: Run, scene: SceneConfig, camera_path: str, methods, genera
                 x, _ = load_frame(sim.path(frame_name(i + 1)))
                 cam = camera_for_frame(scene.cameras, camera_path, i, info.frames, p.width, p.height)
                 with t("total"):
-                    normal_source(m, x, info.particle_radius, cam, p, ss, launch, generator,
+                    normal_source(m, x, info.particle_radius, cam, p, ss, launch, refiner,
                                   run.config.render.normal_threshold, auxiliary)
             out[m] = round(t.mean_ms("total"), 1)
     finally:
@@ -199,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point of ``make evaluate``."""
     run = make_run(parse_args("evaluate", argv))
     methods = tuple(run.config.evaluate.methods)
-    generator, auxiliary, weights = render.load_refiner(run) if "refined" in methods else (None, True, "")
+    refiner, auxiliary, weights = render.load_refiner(run) if "refined" in methods else (None, True, "")
     seqs = sequences(run)
     keys = {f"{s.name}/{c}": dataset.ensure(run, s).key for s, c in seqs}
     entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
@@ -210,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     entry.begin(force=run.force)
     start = time.perf_counter()
-    results = [evaluate_sequence(run, s, c, generator, auxiliary, methods) for s, c in seqs]
+    results = [evaluate_sequence(run, s, c, refiner, auxiliary, methods) for s, c in seqs]
     table = aggregate(results, methods)
     evaluation_figures(entry.dir, results, table, methods)
     write_report(entry.dir, results, table, methods, weights)

@@ -30,12 +30,13 @@ from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, load_environment, tonemap
 from pipeline.shading.background import BackgroundRenderer
 from pipeline.timing import Timings
+from pipeline.writer import BackgroundWriter
 from stages import simulate
 from stages.common import Run, StageError, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
 MODULES = ("pipeline.render", "pipeline.shading", "pipeline.screen", "pipeline.surface", "pipeline.camera",
-           "pipeline.views", "pipeline.media", "stages.render")
+           "pipeline.model", "pipeline.views", "pipeline.media", "pipeline.exr", "pipeline.writer", "stages.render")
 SHIPPED = Path(__file__).resolve().parents[1] / "pipeline" / "weights" / "refiner.pt"
 COMPARED = ("bilateral", "nrf", "refined", "mesh")
 
@@ -58,7 +59,8 @@ def resolve_weights(run: Run) -> Path:
 
 
 def load_refiner(run: Run):
-    """(generator, whether it takes depth features, a content hash of the checkpoint)."""
+    """(refiner, whether it takes depth features, a content hash of the checkpoint)."""
+    from pipeline.model.inference import Refiner
     from pipeline.model.trainer import load_generator
 
     path = resolve_weights(run)
@@ -67,7 +69,7 @@ def load_refiner(run: Run):
     except Exception as exc:
         raise StageError(f"cannot load generator checkpoint {path} ({exc})") from None
     digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
-    return generator, bool(meta["config"]["auxiliary_features"]), digest
+    return Refiner(generator), bool(meta["config"]["auxiliary_features"]), digest
 
 
 def render_entry(run: Run, scene: SceneConfig, sim_key: str, weights: str) -> cache.CacheEntry:
@@ -87,7 +89,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     sim = simulate.ensure(run, scene)
     info = read_sequence_info(sim.dir)
     methods = set(COMPARED if p.comparison else ()) | {p.method}
-    generator, auxiliary, weights = (load_refiner(run) if "refined" in methods else (None, True, ""))
+    refiner, auxiliary, weights = (load_refiner(run) if "refined" in methods else (None, True, ""))
     entry = render_entry(run, scene, sim.key, weights)
     if entry.is_complete() and not force:
         log.info("render %s: cached (%s)", scene.name, entry.dir)
@@ -104,32 +106,41 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     no_fluid: list[int] = []
     log.info("render %s: %d frames, %s camera, method %s%s, %dx%d", scene.name, len(frames), p.camera, p.method,
              " + comparison" if p.comparison else "", p.width, p.height)
+    write_timings = Timings()
+
+    def write_outputs(frame: int, shaded: dict) -> None:
+        main = shaded[p.method]
+        with write_timings("exr_write"):
+            write_exr(entry.path(f"frames/{frame_name(frame, 'exr')}"), main.channels())
+        write_png(entry.path(f"preview/{frame_name(frame, 'png')}"), tonemap(main.beauty, p.exposure))
+        if p.comparison:
+            tiles = [label(tonemap(shaded[m].beauty, p.exposure), _TITLES[m]) for m in COMPARED]
+            write_png(entry.path(f"compare/{frame_name(frame, 'png')}"), np.concatenate(tiles, axis=1))
+
+    def done(frame: int) -> bool:
+        outputs = [f"frames/{frame_name(frame, 'exr')}", f"preview/{frame_name(frame, 'png')}"]
+        outputs += [f"compare/{frame_name(frame, 'png')}"] if p.comparison else []
+        return all(entry.path(o).exists() for o in outputs)
+
     try:
-        for i, frame in enumerate(tqdm(frames, desc=f"render {scene.name}", unit="frame")):
-            exr = entry.path(f"frames/{frame_name(frame, 'exr')}")
-            compare = entry.path(f"compare/{frame_name(frame, 'png')}")
-            if exr.exists() and (compare.exists() or not p.comparison):
-                continue
-            x, _ = load_frame(sim.path(frame_name(frame)))
-            cam = camera_for_frame(scene.cameras, p.camera, i, len(frames), p.width, p.height)
-            with timings("background"):
-                bg, bg_depth = background.render(cam)
-                bg = shader.fill_sky(bg, bg_depth, cam, p)
-            shaded = {}
-            for method in [p.method] + [m for m in COMPARED if p.comparison and m != p.method]:
-                t = timings if method == p.method else Timings()
-                src = normal_source(method, x, info.particle_radius, cam, run.config.dataset, ss, launch, generator,
-                                    p.normal_threshold, auxiliary, t)
-                shaded[method] = shade_frame(src, bg, bg_depth, cam, p, shader, t)
-            main = shaded[p.method]
-            if not main.mask.any():
-                no_fluid.append(frame)
-            with timings("exr_write"):
-                write_exr(exr, main.channels())
-            write_png(entry.path(f"preview/{frame_name(frame, 'png')}"), tonemap(main.beauty, p.exposure))
-            if p.comparison:
-                tiles = [label(tonemap(shaded[m].beauty, p.exposure), _TITLES[m]) for m in COMPARED]
-                write_png(compare, np.concatenate(tiles, axis=1))
+        with BackgroundWriter() as writer:
+            for i, frame in enumerate(tqdm(frames, desc=f"render {scene.name}", unit="frame")):
+                if done(frame):
+                    continue
+                x, _ = load_frame(sim.path(frame_name(frame)))
+                cam = camera_for_frame(scene.cameras, p.camera, i, len(frames), p.width, p.height)
+                with timings("background"):
+                    bg, bg_depth = background.render(cam)
+                    bg = shader.fill_sky(bg, bg_depth, cam, p)
+                shaded = {}
+                for method in [p.method] + [m for m in COMPARED if p.comparison and m != p.method]:
+                    t = timings if method == p.method else Timings()
+                    src = normal_source(method, x, info.particle_radius, cam, run.config.dataset, ss, launch,
+                                        refiner, p.normal_threshold, auxiliary, t)
+                    shaded[method] = shade_frame(src, bg, bg_depth, cam, p, shader, t)
+                if not shaded[p.method].mask.any():
+                    no_fluid.append(frame)
+                writer.submit(write_outputs, frame, shaded)
     finally:
         background.close()
         ss.close()
@@ -148,6 +159,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
         picks = [compares[int(k)] for k in np.linspace(0, len(compares) - 1, min(4, len(compares))).round()]
         contact_sheet(entry.path(f"{scene.name}_comparison_sheet.png"), picks)
         files += [f"{scene.name}_comparison.mp4", f"{scene.name}_comparison_sheet.png"]
+    for k, v in write_timings.total.items():
+        timings.total[k] += v
+        timings.count[k] += write_timings.count[k]
     per_frame = {k: round(1000 * v / max(timings.count[k], 1), 2) for k, v in timings.total.items()}
     entry.finish(files, timings.as_dict(), ms_per_frame=per_frame, frames=len(frames), weights=weights)
     log.info("render %s: %d frames -> %s (%s)", scene.name, len(frames), entry.dir,

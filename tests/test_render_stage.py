@@ -111,3 +111,17 @@ def test_evaluate_smoke(tmp_path):
         row = metrics["overall"][m]
         assert 0 <= row["mean_deg"] <= 180 and 0 <= row["iou"] <= 1 and row["ms_per_frame"] > 0
     assert (entry / "methods.png").exists() and (entry / "examples.png").exists()
+
+
+def test_a_render_killed_between_its_exr_and_preview_resumes(tmp_path):
+    """Outputs are written on a background thread; a frame counts as done only when its EXR and its
+    preview (and comparison) all exist, so a frame whose preview is missing is redone, not stuck."""
+    config = _config(tmp_path, _tiny_checkpoint(tmp_path), method="nrf", comparison=False)
+    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    (entry,) = (tmp_path / "data" / "render").iterdir()
+    (entry / "manifest.json").unlink()  # as if killed before the end
+    (entry / "preview" / "frame_0003.png").unlink()
+    kept = (entry / "frames" / "frame_0001.exr").stat().st_mtime_ns
+    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert (entry / "preview" / "frame_0003.png").exists() and (entry / "manifest.json").exists()
+    assert (entry / "frames" / "frame_0001.exr").stat().st_mtime_ns == kept, "finished frames are not redone"

@@ -50,7 +50,8 @@ def _sheet(z: float, x_range, size: float = 0.4, spacing: float = R) -> np.ndarr
     return np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)], 1)
 
 
-def test_step_edge_bilateral_smears_narrow_range_keeps(ss):
+@pytest.mark.parametrize("mode", ["fast", "exact"])
+def test_step_edge_bilateral_smears_narrow_range_keeps(ss, mode):
     """A near layer over the left half, a far layer 12 r behind it everywhere.
 
     Thresholds: on the far layer's pixels within 6 px of the step, the narrow-range filter moves
@@ -63,7 +64,7 @@ def test_step_edge_bilateral_smears_narrow_range_keeps(ss):
     far = _sheet(-1.0 - step, (-0.5, 0.5))
     sp = ss.splat(np.concatenate([near, far]).astype(np.float32), R, cam)
     far_only = ss.splat(far.astype(np.float32), R, cam)
-    p = DatasetConfig()
+    p = DatasetConfig(filter_mode=mode)
     # reference: each filter applied to the far layer alone (what it would be without the step)
     filtered = {
         "bilateral": (ss.bilateral(sp.depth, cam, R, p), ss.bilateral(far_only.depth, cam, R, p)),
@@ -84,7 +85,8 @@ def test_step_edge_bilateral_smears_narrow_range_keeps(ss):
     assert shift["gaussian"] > 2.0, shift
 
 
-def test_tilted_plane_stays_planar_under_narrow_range(ss):
+@pytest.mark.parametrize("mode", ["fast", "exact"])
+def test_tilted_plane_stays_planar_under_narrow_range(ss, mode):
     """A densely sampled plane seen at 60 degrees: the depth slope per pixel is about r, so a
     fixed range of delta = 10.5 r would cut it within a dozen pixels; the dynamic range follows
     it. Away from the silhouette (where empty pixels are clamped behind on purpose) the filtered
@@ -100,7 +102,8 @@ def test_tilted_plane_stays_planar_under_narrow_range(ss):
     a, b = np.meshgrid(s, s)
     pts = np.array([0, 0, -1.0]) + a.ravel()[:, None] * u + b.ravel()[:, None] * v
     sp = ss.splat(pts.astype(np.float32), R, cam)
-    out = ss.narrow_range(sp.depth, cam, R, DatasetConfig())
+    # few taps, so that the fast passes really skip pixels (a radius of 9 px, every 3rd read)
+    out = ss.narrow_range(sp.depth, cam, R, DatasetConfig(filter_mode=mode, nrf_max_taps=3))
     inner = binary_erosion(sp.mask > 0, iterations=12, border_value=0)
     assert inner.sum() > 5000
     pos = cam.unproject(out)[inner]
@@ -112,10 +115,64 @@ def test_tilted_plane_stays_planar_under_narrow_range(ss):
     assert np.degrees(np.arccos(np.clip(np.abs(normals @ n), 0, 1))).mean() < 2.0
 
 
-def test_filters_leave_background_empty(ss):
+@pytest.mark.parametrize("mode", ["fast", "exact"])
+def test_filters_leave_background_empty(ss, mode):
     cam = _camera(64)
     sp = ss.splat(np.zeros((0, 3), np.float32), R, cam)
-    p = DatasetConfig()
+    p = DatasetConfig(filter_mode=mode)
     for d in (ss.bilateral(sp.depth, cam, R, p), ss.narrow_range(sp.depth, cam, R, p), ss.gaussian(sp.depth, 2.0)):
         assert not d.any()
     assert not ss.normals(sp.depth, cam).any()
+
+
+def _bumpy_sheet_depth(ss, size=160):
+    """Sphere splats of a jittered sheet, close enough that a particle spans several pixels."""
+    cam = _camera(size, 40.0)
+    pts = _sheet(-0.6, (-0.3, 0.3), size=0.3)
+    pts += np.random.default_rng(0).normal(scale=0.2 * R, size=pts.shape)
+    return cam, ss.splat(pts.astype(np.float32), R, cam)
+
+
+def test_fast_narrow_range_with_enough_taps_is_the_exact_filter(ss):
+    """With at least as many taps as the widest radius the stride is 1 and 'fast' reads every pixel:
+    bit-identical to 'exact'. With few taps it differs (so the stride is really applied) but stays
+    within a small fraction of a radius."""
+    cam, sp = _bumpy_sheet_depth(ss)
+    exact = ss.narrow_range(sp.depth, cam, R, DatasetConfig(filter_mode="exact"))
+    wide = ss.narrow_range(sp.depth, cam, R, DatasetConfig(filter_mode="fast", nrf_max_taps=100))
+    np.testing.assert_array_equal(wide, exact)
+    strided = ss.narrow_range(sp.depth, cam, R, DatasetConfig(filter_mode="fast", nrf_max_taps=4))
+    fluid = sp.mask > 0
+    assert np.abs(strided - exact)[fluid].max() > 1e-6
+    assert np.abs(strided - exact)[fluid].mean() < 0.05 * R
+
+
+def test_separable_bilateral_is_the_2d_filter_without_range_weights(ss):
+    """With an enormous range sigma the bilateral filter is a Gaussian of the fluid pixels; on a
+    fully covered image away from the borders the separable passes equal the 2D window (a Gaussian
+    is separable), to float rounding."""
+    cam, sp = _bumpy_sheet_depth(ss)
+    p = {"bilateral_range_radii": 1e6, "bilateral_max_radius_px": 6}
+    sep = ss.bilateral(sp.depth, cam, R, DatasetConfig(filter_mode="fast", **p))
+    full = ss.bilateral(sp.depth, cam, R, DatasetConfig(filter_mode="exact", **p))
+    from scipy.ndimage import binary_erosion
+
+    inner = binary_erosion(sp.mask > 0, iterations=8, border_value=0)
+    assert inner.sum() > 2000
+    # the spatial sigma follows each pixel's own depth, which differs by a fraction of a percent
+    # between the passes' centres: agreement to 1e-3 r, against bumps of about 0.3 r
+    assert np.abs(sep - full)[inner].max() < 1e-3 * R
+    assert np.abs(sp.depth - full)[inner].max() > 0.1 * R
+
+
+def test_splat_is_the_same_on_one_thread_and_in_row_bands(ss):
+    cam, sp = _bumpy_sheet_depth(ss)
+    one = ScreenSpace("cpu", threads=1)
+    try:
+        single = one.splat(_sheet(-0.6, (-0.3, 0.3), size=0.3).astype(np.float32), R, cam)
+    finally:
+        one.close()
+    banded = ss.splat(_sheet(-0.6, (-0.3, 0.3), size=0.3).astype(np.float32), R, cam)
+    for a, b in ((single.depth, banded.depth), (single.thickness, banded.thickness), (single.mask, banded.mask)):
+        np.testing.assert_array_equal(a, b)
+    assert single.mask.mean() > 0.3

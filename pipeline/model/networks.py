@@ -52,6 +52,18 @@ class Generator(nn.Module):
         ])
         self.head = nn.Conv2d(ch[0], 3, 3, 1, 1)
 
+    def receptive_radius(self) -> int:
+        """Pixels beyond which an input cannot change an output pixel (an upper bound).
+
+        Every 3x3 convolution reaches one pixel of its own scale (2^k input pixels at scale k), and
+        each nearest-neighbour up-sampling shifts by up to one pixel of the coarser scale."""
+        d, b = len(self.down), len(self.res)
+        stem_and_head = 2
+        encoder = sum(2**k for k in range(d))
+        bottleneck = 2 * b * 2**d
+        decoder = sum(2**k + 2 ** (k + 1) for k in range(d))
+        return stem_and_head + encoder + bottleneck + decoder
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]
         if h % self.stride or w % self.stride:

@@ -107,9 +107,12 @@ class Refiner:
         self.scaler.load_state_dict(state["scaler"])
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def predict(generator: Generator, inputs: np.ndarray, device: torch.device | str = "cpu") -> np.ndarray:
-    """Run a generator on one C x H x W input, padding to its stride; returns H x W x 3."""
+    """Run a generator on one C x H x W input, padding to its stride; returns H x W x 3.
+
+    The plain forward pass of the training-time module (validation during training);
+    ``pipeline.model.inference.Refiner`` is the faster one for rendering."""
     generator.eval()
     _, h, w = inputs.shape
     s = generator.stride

@@ -1,7 +1,9 @@
 """Screen-space fluid inputs: sphere splatting, depth filters and normals (host side).
 
 Each filter is a function ``(depth, ...) -> depth`` over NumPy H x W float32 maps in the
-convention of ``pipeline.camera`` (positive view depth, 0 = empty).
+convention of ``pipeline.camera`` (positive view depth, 0 = empty). ``ScreenSpace.inputs`` chains
+splat, filters and normals on the device without round trips through NumPy, in buffers that are
+allocated once per image size and reused frame after frame.
 """
 
 from __future__ import annotations
@@ -15,8 +17,14 @@ from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
+from pipeline.timing import Timings
 
 _EMPTY = 1.0e30
+FILTERS = ("gaussian", "bilateral", "nrf")
+
+# Row bands of the splat per thread: threads take bands as they come free, so fluid crowded into a
+# few rows still spreads over the cores; each band culls every particle, which costs ~0.1 ms.
+SPLAT_BANDS_PER_THREAD = 4
 
 
 @dataclass
@@ -29,74 +37,161 @@ class SplatResult:
 
 
 class ScreenSpace:
-    """Runs the screen-space kernels for one device (holds the thread pool)."""
+    """Runs the screen-space kernels for one device (holds the thread pool and the frame buffers).
+
+    Not thread-safe: give each thread its own instance (the buffers are reused between calls).
+    """
 
     def __init__(self, device: str = "cpu", threads: int = 0):
         self.device = device
         self.launch = Launcher(device, threads, min_chunk=4096)
+        self._buffers: dict[tuple, wp.array] = {}
 
-    def _arr(self, a: np.ndarray) -> wp.array:
-        return wp.array(np.ascontiguousarray(a, np.float32).ravel(), dtype=float, device=self.device)
+    # ---- device buffers -------------------------------------------------------------------------
+
+    def _buffer(self, name: str, n: int, dtype=float) -> wp.array:
+        """A device array reused between frames of the same size."""
+        key = (name, n, dtype)
+        buf = self._buffers.get(key)
+        if buf is None:
+            buf = self._buffers[key] = wp.empty(n, dtype=dtype, device=self.device)
+        return buf
+
+    def _upload(self, name: str, depth: np.ndarray) -> wp.array:
+        buf = self._buffer(name, depth.size)
+        buf.assign(np.ascontiguousarray(depth, np.float32).ravel())
+        return buf
+
+    @staticmethod
+    def _download(a: wp.array, shape: tuple[int, ...]) -> np.ndarray:
+        # a copy: the buffer is overwritten by the next frame
+        return a.numpy().reshape(shape).copy()
+
+    # ---- kernels on device arrays ---------------------------------------------------------------
+
+    def _splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> tuple[wp.array, ...]:
+        w, h = camera.width, camera.height
+        depth, thickness = self._buffer("depth", w * h), self._buffer("thickness", w * h)
+        mask = self._buffer("mask", w * h)
+        depth.fill_(_EMPTY)
+        thickness.zero_()
+        n = len(positions_world)
+        if n:
+            centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
+                               dtype=wp.vec3, device=self.device)
+            bands = self._row_bands(h)
+            self.launch.tasks(K.splat_spheres, n, [[centers, radius, camera.focal_px, w, h, r0, r1, depth, thickness]
+                                                   for r0, r1 in bands])
+        self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
+        return depth, mask, thickness
+
+    def _row_bands(self, height: int) -> list[tuple[int, int]]:
+        count = 1 if not self.launch.cpu else max(1, min(height, SPLAT_BANDS_PER_THREAD * self.launch.threads))
+        bounds = [height * k // count for k in range(count + 1)]
+        return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
+
+    def _gaussian(self, depth: wp.array, w: int, h: int, sigma_px: float) -> wp.array:
+        radius = max(1, int(np.ceil(3.0 * sigma_px)))
+        a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
+        self.launch(K.gaussian_pass, w * h, [depth, w, h, 0, sigma_px, radius, a])
+        self.launch(K.gaussian_pass, w * h, [a, w, h, 1, sigma_px, radius, b])
+        return b
+
+    def _bilateral(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
+        w, h = camera.width, camera.height
+        out = self._buffer("bilateral", w * h)
+        args = [camera.focal_px, r, p.bilateral_sigma_px_scale, p.bilateral_range_radii * r, p.bilateral_max_radius_px]
+        if p.filter_mode == "exact":
+            self.launch(K.bilateral_filter, w * h, [depth, w, h, *args, out])
+            return out
+        a = self._buffer("pass", w * h)
+        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, a])
+        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, out])
+        return out
+
+    def _narrow_range(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
+        w, h = camera.width, camera.height
+        delta, mu = p.nrf_delta_radii * r, p.nrf_mu_radii * r
+        taps = p.nrf_max_taps if p.filter_mode == "fast" else 0
+        # ping-pong between two buffers; the input stays untouched
+        bufs = [self._buffer("pass", w * h), self._buffer("nrf", w * h)]
+        passes = 2 * p.nrf_iterations + (p.nrf_cleanup_radius_px > 0)
+        src, k = depth, passes % 2  # so that the last pass lands in the "nrf" buffer
+        for _ in range(p.nrf_iterations):
+            for axis in (0, 1):
+                dst = bufs[k]
+                self.launch(K.narrow_range_pass, w * h, [src, w, h, axis, camera.focal_px, r, p.nrf_radius_scale,
+                                                         p.nrf_max_radius_px, delta, mu, taps, dst])
+                src, k = dst, 1 - k
+        if p.nrf_cleanup_radius_px > 0:
+            dst = bufs[k]
+            self.launch(K.narrow_range_cleanup, w * h, [src, w, h, p.nrf_cleanup_radius_px, delta, mu, dst])
+            src = dst
+        return src
+
+    def _normals(self, depth: wp.array, camera: Camera) -> wp.array:
+        w, h = camera.width, camera.height
+        out = self._buffer("normals", w * h, wp.vec3)
+        self.launch(K.normals_from_depth, w * h, [depth, w, h, camera.focal_px, out])
+        return out
+
+    def _filter(self, name: str, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
+        if name == "gaussian":
+            return self._gaussian(depth, camera.width, camera.height, p.gaussian_sigma_px)
+        if name == "bilateral":
+            return self._bilateral(depth, camera, r, p)
+        if name == "nrf":
+            return self._narrow_range(depth, camera, r, p)
+        raise ValueError(f"unknown filter {name!r} (one of {', '.join(FILTERS)})")
+
+    # ---- NumPy API ------------------------------------------------------------------------------
+
+    def inputs(self, positions_world: np.ndarray, radius: float, camera: Camera, p: DatasetConfig,
+               filters: tuple[str, ...] = FILTERS, timings: Timings | None = None) -> dict[str, np.ndarray]:
+        """Splat, filter and differentiate one view: ``Z``, ``A``, ``thickness`` and per filter
+        ``<f>.Z`` and ``<f>.N`` (H x W x 3)."""
+        t = timings or Timings()
+        shape = (camera.height, camera.width)
+        with t("splat"):
+            depth, mask, thickness = self._splat(positions_world, radius, camera)
+            out = {"Z": self._download(depth, shape), "A": self._download(mask, shape),
+                   "thickness": self._download(thickness, shape)}
+        for name in filters:
+            with t(name):
+                d = self._filter(name, depth, camera, radius, p)
+            with t("normals"):
+                n = self._normals(d, camera)
+                out[f"{name}.Z"] = self._download(d, shape)
+                out[f"{name}.N"] = self._download(n, (*shape, 3))
+        return out
 
     def splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> SplatResult:
         """Nearest sphere-surface depth, fluid mask and summed chord thickness per pixel."""
-        w, h = camera.width, camera.height
-        depth = wp.full(w * h, _EMPTY, dtype=float, device=self.device)
-        thickness = wp.zeros(w * h, dtype=float, device=self.device)
-        if len(positions_world):
-            centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
-                               dtype=wp.vec3, device=self.device)
-            # one launch: atomics from several CPU threads would race
-            wp.launch(K.splat_spheres, dim=len(positions_world),
-                      inputs=[centers, radius, camera.focal_px, w, h, depth, thickness], device=self.device)
-        d = depth.numpy().reshape(h, w)
-        mask = d < _EMPTY * 0.5
-        d = np.where(mask, d, 0.0).astype(np.float32)
-        return SplatResult(d, mask.astype(np.float32), thickness.numpy().reshape(h, w))
+        shape = (camera.height, camera.width)
+        depth, mask, thickness = self._splat(positions_world, radius, camera)
+        return SplatResult(*(self._download(a, shape) for a in (depth, mask, thickness)))
 
     def gaussian(self, depth: np.ndarray, sigma_px: float) -> np.ndarray:
         """Naive separable Gaussian blur restricted to fluid pixels (fixed screen-space size)."""
         h, w = depth.shape
-        radius = max(1, int(np.ceil(3.0 * sigma_px)))
-        a, b = self._arr(depth), wp.zeros(w * h, dtype=float, device=self.device)
-        self.launch(K.gaussian_pass, w * h, [a, w, h, 0, sigma_px, radius, b])
-        self.launch(K.gaussian_pass, w * h, [b, w, h, 1, sigma_px, radius, a])
-        return a.numpy().reshape(h, w)
+        return self._download(self._gaussian(self._upload("input", depth), w, h, sigma_px), depth.shape)
 
     def bilateral(self, depth: np.ndarray, camera: Camera, particle_radius: float, p: DatasetConfig) -> np.ndarray:
-        """Bilateral Gaussian; spatial sigma from the projected particle radius at each pixel."""
-        h, w = depth.shape
-        a, b = self._arr(depth), wp.zeros(w * h, dtype=float, device=self.device)
-        self.launch(K.bilateral_filter, w * h, [a, w, h, camera.focal_px, particle_radius,
-                                                p.bilateral_sigma_px_scale,
-                                                p.bilateral_range_radii * particle_radius,
-                                                p.bilateral_max_radius_px, b])
-        return b.numpy().reshape(h, w)
+        """Bilateral Gaussian; spatial sigma from the projected particle radius at each pixel
+        (two separable passes in 'fast' mode, a full 2D window in 'exact' mode)."""
+        return self._download(self._bilateral(self._upload("input", depth), camera, particle_radius, p), depth.shape)
 
     def narrow_range(self, depth: np.ndarray, camera: Camera, particle_radius: float,
                      p: DatasetConfig) -> np.ndarray:
         """Narrow-Range Filter: alternating separable passes, then the 2D clean-up pass."""
-        h, w = depth.shape
-        a, b = self._arr(depth), wp.zeros(w * h, dtype=float, device=self.device)
-        delta, mu = p.nrf_delta_radii * particle_radius, p.nrf_mu_radii * particle_radius
-        common = [w, h]
-        for _ in range(p.nrf_iterations):
-            for axis in (0, 1):
-                self.launch(K.narrow_range_pass, w * h, [a, *common, axis, camera.focal_px, particle_radius,
-                                                         p.nrf_radius_scale, p.nrf_max_radius_px, delta, mu, b])
-                a, b = b, a
-        if p.nrf_cleanup_radius_px > 0:
-            self.launch(K.narrow_range_cleanup, w * h, [a, *common, p.nrf_cleanup_radius_px, delta, mu, b])
-            a = b
-        return a.numpy().reshape(h, w)
+        d = self._narrow_range(self._upload("input", depth), camera, particle_radius, p)
+        return self._download(d, depth.shape)
 
     def normals(self, depth: np.ndarray, camera: Camera) -> np.ndarray:
         """View-space unit normals (H x W x 3) of a depth map; zero vectors where empty."""
-        h, w = depth.shape
-        out = wp.zeros(w * h, dtype=wp.vec3, device=self.device)
-        self.launch(K.normals_from_depth, w * h, [self._arr(depth), w, h, camera.focal_px, out])
-        return out.numpy().reshape(h, w, 3)
+        return self._download(self._normals(self._upload("input", depth), camera), (*depth.shape, 3))
 
     def close(self) -> None:
-        """Stop the thread pool."""
+        """Stop the thread pool and free the buffers."""
         self.launch.close()
+        self._buffers.clear()

@@ -16,16 +16,21 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.kernel
 def splat_spheres(
+    offset: int,
     centers_view: wp.array(dtype=wp.vec3),
     radius: float,
     focal: float,
     width: int,
     height: int,
+    row0: int,
+    row1: int,
     depth: wp.array(dtype=float),
     thickness: wp.array(dtype=float),
 ):
-    """Exact ray-sphere splat: nearest front-surface depth (atomic min) and summed chord length."""
-    i = wp.tid()
+    """Exact ray-sphere splat into the rows [row0, row1): nearest front-surface depth and summed
+    chord length. Each launch owns a band of rows, so bands can run on several threads at once
+    without races (the min and add are atomic on CUDA, where one launch covers all rows)."""
+    i = wp.tid() + offset
     c = centers_view[i]
     d = -c[2]
     if d <= radius:
@@ -35,13 +40,13 @@ def splat_spheres(
     rp = focal * radius / wp.sqrt(d * d - radius * radius) + 1.0
     x0 = wp.max(int(wp.floor(cx - rp)), 0)
     x1 = wp.min(int(wp.ceil(cx + rp)), width - 1)
-    y0 = wp.max(int(wp.floor(cy - rp)), 0)
-    y1 = wp.min(int(wp.ceil(cy + rp)), height - 1)
+    y0 = wp.max(int(wp.floor(cy - rp)), row0)
+    y1 = wp.min(int(wp.ceil(cy + rp)), row1 - 1)
     cc = wp.dot(c, c) - radius * radius
     for py in range(y0, y1 + 1):
+        ry = -(float(py) + 0.5 - float(height) * 0.5) / focal
         for px in range(x0, x1 + 1):
-            ray = wp.vec3((float(px) + 0.5 - float(width) * 0.5) / focal,
-                          -(float(py) + 0.5 - float(height) * 0.5) / focal, -1.0)
+            ray = wp.vec3((float(px) + 0.5 - float(width) * 0.5) / focal, ry, -1.0)
             a = wp.dot(ray, ray)
             b = wp.dot(ray, c)
             disc = b * b - a * cc
@@ -50,7 +55,30 @@ def splat_spheres(
                 t0 = (b - sq) / a
                 idx = py * width + px
                 wp.atomic_min(depth, idx, t0)
-                wp.atomic_add(thickness, idx, 2.0 * sq / a * wp.sqrt(a))
+                wp.atomic_add(thickness, idx, 2.0 * sq / wp.sqrt(a))
+
+
+@wp.kernel
+def finish_splat(offset: int, depth: wp.array(dtype=float), empty: float, mask: wp.array(dtype=float)):
+    """Empty pixels (still at the ``empty`` sentinel) get depth 0 and mask 0; the rest mask 1."""
+    idx = wp.tid() + offset
+    if depth[idx] >= empty:
+        depth[idx] = 0.0
+        mask[idx] = 0.0
+    else:
+        mask[idx] = 1.0
+
+
+@wp.func
+def tap_stride(radius: int, max_taps: int) -> int:
+    """Pixels between taps so that at most ``max_taps`` fall on each side of a pass (0: every pixel).
+
+    A kernel wider than max_taps samples every stride-th pixel: its cost per pixel no longer grows
+    with the projected particle size, and with at least max_taps / 2 taps per sigma the sphere bumps
+    (about two projected radii apart) are still sampled several times per period."""
+    if max_taps <= 0 or radius <= max_taps:
+        return 1
+    return (radius + max_taps - 1) // max_taps
 
 
 @wp.kernel
@@ -133,6 +161,65 @@ def bilateral_filter(
     depth_out[idx] = s / ws
 
 
+@wp.kernel
+def bilateral_pass(
+    offset: int,
+    depth_in: wp.array(dtype=float),
+    width: int,
+    height: int,
+    axis: int,
+    focal: float,
+    particle_radius: float,
+    sigma_scale: float,
+    range_sigma: float,
+    max_radius: int,
+    depth_out: wp.array(dtype=float),
+):
+    """One 1D pass of the separable bilateral filter (Pham & van Vliet 2005).
+
+    The same spatial sigma, radius and range sigma as ``bilateral_filter``; the range reference is
+    the pixel's value in this pass's input. Two passes (x, then y) cost O(radius) per pixel instead
+    of O(radius^2). Every pixel of the radius is read: sampling every k-th one made neighbouring
+    outputs average disjoint samples of the sphere bumps, and the normals 5x rougher."""
+    idx = wp.tid() + offset
+    d0 = depth_in[idx]
+    if d0 <= 0.0:
+        depth_out[idx] = 0.0
+        return
+    row = idx // width
+    col = idx - row * width
+    sigma = wp.max(sigma_scale * focal * particle_radius / d0, 0.5)
+    rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
+    inv_s = 1.0 / (2.0 * sigma * sigma)
+    inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
+    step = 1
+    pos = col
+    limit = width
+    if axis == 1:
+        step = width
+        pos = row
+        limit = height
+    s = d0
+    ws = float(1.0)
+    for k in range(1, rad + 1):
+        ww = wp.exp(-float(k * k) * inv_s)
+        if pos + k < limit:
+            da = depth_in[idx + k * step]
+            if da > 0.0:
+                dz = da - d0
+                w = ww * wp.exp(-dz * dz * inv_r)
+                s += w * da
+                ws += w
+        if pos - k >= 0:
+            db = depth_in[idx - k * step]
+            if db > 0.0:
+                dz = db - d0
+                w = ww * wp.exp(-dz * dz * inv_r)
+                s += w * db
+                ws += w
+    depth_out[idx] = s / ws
+
+
 @wp.func
 def nrf_sample(dk: float, d0: float, mu: float) -> float:
     """Sample value after clamping: empty pixels and samples far behind count as d0 + mu."""
@@ -154,6 +241,7 @@ def narrow_range_pass(
     max_radius: int,
     delta: float,
     mu: float,
+    max_taps: int,
     depth_out: wp.array(dtype=float),
 ):
     """One 1D pass of the Narrow-Range Filter with bias correction and dynamic range.
@@ -162,7 +250,8 @@ def narrow_range_pass(
     near bound gets weight 0, and so does its mirrored partner (bias correction: the kernel stays
     symmetric). A sample behind by more than the far bound is clamped to d0 + mu. An accepted
     sample widens the range to its own value +- delta (dynamic range), so an oblique plane is
-    followed instead of being cut off as a discontinuity.
+    followed instead of being cut off as a discontinuity. Taps are ``tap_stride`` pixels apart, so
+    a pass costs at most 2 max_taps + 1 taps at any projected particle size (0: every pixel).
     """
     idx = wp.tid() + offset
     d0 = depth_in[idx]
@@ -175,6 +264,8 @@ def narrow_range_pass(
     if rad < 1:
         depth_out[idx] = d0
         return
+    stride = tap_stride(rad, max_taps)
+    taps = rad // stride
     sigma = float(rad) / 3.0
     inv = 1.0 / (2.0 * sigma * sigma)
     near1 = d0 - delta
@@ -183,7 +274,8 @@ def narrow_range_pass(
     far2 = far1
     s = d0
     ws = float(1.0)
-    for k in range(1, rad + 1):
+    for t in range(1, taps + 1):
+        k = t * stride
         xa = col
         ya = row
         xb = col
