@@ -60,16 +60,17 @@ def _pbf_frame(n: int) -> tuple[np.ndarray, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=50_000)
+    parser.add_argument("--exact", action="store_true", help="the exact (pre-2026-11) filters instead of the fast")
     args = parser.parse_args()
     wp.config.quiet = True
-    p = DatasetConfig()
+    p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     frames = {"splishsplash dam break (6,859)": (read_particles(bgeo).positions, 0.025)}
     x50, r50 = _pbf_frame(args.particles)
     frames[f"PBF dam break ({len(x50):,})"] = (x50, r50)
 
-    print("screen-space inputs, ms per frame (2 threads)")
+    print(f"screen-space inputs, ms per frame (2 threads, {p.filter_mode} filters)")
     print(f"{'frame':34s} {'size':>6s} {'splat':>7s} {'bilat':>7s} {'nrf':>7s} {'normals':>8s}")
     for name, (x, r) in frames.items():
         for size in (512, 1024):

@@ -113,7 +113,7 @@ def plot(results: dict, path: Path) -> None:
             style = "--" if key == "plain_refiner" else "-"
             ax.loglog(px, [rows[str(s)][key] for s in sizes], style, marker="o", label=key.replace("_", " "))
         linear = [rows[str(sizes[0])]["inputs"] * n / px[0] for n in px]
-        ax.loglog(px, linear, ":", color="gray", label="linear in pixels")
+        ax.loglog(px, linear, ":", color="gray", label="inputs, if linear in pixels")
         ax.set_title(f"{name}")
         ax.set_xlabel("pixels per frame")
         ax.set_ylabel("ms per frame")

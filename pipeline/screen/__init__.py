@@ -86,7 +86,8 @@ class ScreenSpace:
         return depth, mask, thickness
 
     def _row_bands(self, height: int) -> list[tuple[int, int]]:
-        count = 1 if not self.launch.cpu else max(1, min(height, SPLAT_BANDS_PER_THREAD * self.launch.threads))
+        parallel = self.launch.cpu and self.launch.threads > 1
+        count = max(1, min(height, SPLAT_BANDS_PER_THREAD * self.launch.threads)) if parallel else 1
         bounds = [height * k // count for k in range(count + 1)]
         return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
 
