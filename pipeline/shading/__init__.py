@@ -26,25 +26,40 @@ class Shader:
 
     def __init__(self, device: str = "cpu", threads: int = 0, environment: np.ndarray | None = None):
         self.device = device
+        self._cpu = not str(device).startswith("cuda")
         self.launch = Launcher(device, threads, min_chunk=4096)
         env = environment if environment is not None else np.zeros((1, 1, 3), np.float32)
         self.use_env_map = int(environment is not None)
         self.env = wp.array(np.ascontiguousarray(env, np.float32), dtype=wp.vec3, device=device)
 
+    def _device_view(self, a: np.ndarray, dtype=float) -> wp.array:
+        """An image as a flat Warp array: on the CPU a view of the NumPy memory (no copy, no
+        allocation), on a GPU an upload."""
+        a = np.ascontiguousarray(a, np.float32)
+        a = a.reshape(-1, 3) if dtype is wp.vec3 else a.ravel()
+        return wp.array(a, dtype=dtype, device=self.device, copy=not self._cpu)
+
+    def _output(self, host: np.ndarray, dtype) -> wp.array:
+        """Where a kernel writes ``host``'s pixels: ``host`` itself on the CPU, a device array on a GPU."""
+        if self._cpu:
+            return wp.array(host.reshape(-1, host.shape[-1]), dtype=dtype, device=self.device, copy=False)
+        return wp.empty(host.shape[0] * host.shape[1], dtype=dtype, device=self.device)
+
+    def _result(self, out: wp.array, host: np.ndarray) -> np.ndarray:
+        if not self._cpu:
+            host[...] = out.numpy().reshape(host.shape)
+        return host
+
     def shade(self, normals: np.ndarray, depth: np.ndarray, thickness: np.ndarray, mask: np.ndarray,
               background: np.ndarray, background_depth: np.ndarray, camera: Camera, p: RenderConfig) -> np.ndarray:
         """Linear RGBA beauty (H x W x 4); alpha is 1 where the fluid is visible."""
         h, w = depth.shape
-        dev = self.device
-
-        def arr(a, dtype=float):
-            return wp.array(np.ascontiguousarray(a, np.float32).reshape(h * w, -1).squeeze(-1) if dtype is float
-                            else np.ascontiguousarray(a, np.float32).reshape(h * w, 3), dtype=dtype, device=dev)
-
+        arr = self._device_view
         light_world = np.asarray(p.light_dir, np.float64)
         light_world /= np.linalg.norm(light_world)
         light_view = camera.view[:3, :3] @ light_world
-        out = wp.zeros(h * w, dtype=wp.vec4, device=dev)
+        beauty = np.empty((h, w, 4), np.float32)
+        out = self._output(beauty, wp.vec4)
         rot = camera.cam_to_world[:3, :3].astype(np.float32)
         alpha = max(p.roughness**2, 1e-3)
         self.launch(K.shade_fluid, h * w, [
@@ -54,23 +69,22 @@ class Shader:
             camera.focal_px, fresnel_f0(p.ior), wp.vec3(*absorption_coefficients(p).astype(np.float32)),
             wp.vec3(*p.fluid_color), p.diffuse_weight, p.light_intensity, alpha, int(p.specular == "ggx"),
             p.refraction_strength * w, out])
-        return out.numpy().reshape(h, w, 4)
+        return self._result(out, beauty)
 
     def fill_sky(self, background: np.ndarray, background_depth: np.ndarray, camera: Camera,
                  p: RenderConfig) -> np.ndarray:
         """The background with the environment filled in where nothing was rasterised."""
         h, w = background_depth.shape
-        dev = self.device
         sun = np.asarray(p.light_dir, np.float64)
         sun /= np.linalg.norm(sun)
-        out = wp.zeros(h * w, dtype=wp.vec3, device=dev)
+        sky = np.empty((h, w, 3), np.float32)
+        out = self._output(sky, wp.vec3)
         rot = camera.cam_to_world[:3, :3].astype(np.float32)
         self.launch(K.fill_sky, h * w, [
-            wp.array(np.ascontiguousarray(background, np.float32).reshape(-1, 3), dtype=wp.vec3, device=dev),
-            wp.array(np.ascontiguousarray(background_depth, np.float32).ravel(), dtype=float, device=dev),
+            self._device_view(background, wp.vec3), self._device_view(background_depth),
             self.env, self.use_env_map, wp.mat33(*rot.ravel()), wp.vec3(*sun.astype(np.float32)), w, h,
             camera.focal_px, out])
-        return out.numpy().reshape(h, w, 3)
+        return self._result(out, sky)
 
     def close(self) -> None:
         """Stop the thread pool."""
