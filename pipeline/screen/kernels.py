@@ -119,6 +119,12 @@ def gaussian_pass(
     depth_out[idx] = s / ws
 
 
+@wp.func
+def bilateral_sigma(d0: float, focal: float, particle_radius: float, sigma_scale: float) -> float:
+    """Spatial sigma of the bilateral filter at depth d0: a multiple of the projected radius (px)."""
+    return wp.max(sigma_scale * focal * particle_radius / d0, 0.5)
+
+
 @wp.kernel
 def bilateral_filter(
     offset: int,
@@ -140,7 +146,7 @@ def bilateral_filter(
         return
     row = idx // width
     col = idx - row * width
-    sigma = wp.max(sigma_scale * focal * particle_radius / d0, 0.5)
+    sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
     rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
     inv_s = 1.0 / (2.0 * sigma * sigma)
     inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
@@ -188,7 +194,7 @@ def bilateral_pass(
         return
     row = idx // width
     col = idx - row * width
-    sigma = wp.max(sigma_scale * focal * particle_radius / d0, 0.5)
+    sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
     rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
     inv_s = 1.0 / (2.0 * sigma * sigma)
     inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
