@@ -17,6 +17,7 @@ from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
+from pipeline.surface import Ellipsoids
 from pipeline.timing import Timings
 
 _EMPTY = 1.0e30
@@ -29,11 +30,12 @@ SPLAT_BANDS_PER_THREAD = 4
 
 @dataclass
 class SplatResult:
-    """Raw sphere depth, mask and thickness of one view."""
+    """Raw splat depth, mask and thickness of one view (and the ellipsoids' analytic normals)."""
 
     depth: np.ndarray
     mask: np.ndarray
     thickness: np.ndarray
+    normals: np.ndarray | None = None
 
 
 class ScreenSpace:
@@ -84,6 +86,30 @@ class ScreenSpace:
                                                    for r0, r1 in bands])
         self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
         return depth, mask, thickness
+
+    def _splat_ellipsoids(self, ellipsoids: Ellipsoids, camera: Camera,
+                          with_normals: bool = False) -> tuple[wp.array, ...]:
+        w, h = camera.width, camera.height
+        depth, thickness = self._buffer("depth", w * h), self._buffer("thickness", w * h)
+        mask, normals = self._buffer("mask", w * h), self._buffer("splat_normals", w * h, wp.vec3)
+        depth.fill_(_EMPTY)
+        thickness.zero_()
+        normals.zero_()
+        n = len(ellipsoids.centres)
+        if n:
+            rot = camera.view[:3, :3]
+            centres = camera.to_view(np.asarray(ellipsoids.centres, np.float64)).astype(np.float32)
+            shapes = np.einsum("ij,njk,lk->nil", rot, ellipsoids.shapes.astype(np.float64), rot).astype(np.float32)
+            args = [wp.array(centres, dtype=wp.vec3, device=self.device),
+                    wp.array(shapes, dtype=wp.mat33, device=self.device),
+                    wp.array(np.asarray(ellipsoids.bounds, np.float32), dtype=float, device=self.device),
+                    camera.focal_px, w, h]
+            bands = self._row_bands(h)
+            self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, depth, thickness] for r0, r1 in bands])
+            if with_normals:
+                self.launch.tasks(K.ellipsoid_normals, n, [[*args, r0, r1, depth, normals] for r0, r1 in bands])
+        self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
+        return depth, mask, thickness, normals
 
     def _row_bands(self, height: int) -> list[tuple[int, int]]:
         parallel = self.launch.cpu and self.launch.threads > 1
@@ -148,22 +174,35 @@ class ScreenSpace:
     # ---- NumPy API ------------------------------------------------------------------------------
 
     def inputs(self, positions_world: np.ndarray, radius: float, camera: Camera, p: DatasetConfig,
-               filters: tuple[str, ...] = FILTERS, timings: Timings | None = None) -> dict[str, np.ndarray]:
+               filters: tuple[str, ...] = FILTERS, timings: Timings | None = None,
+               ellipsoids: Ellipsoids | None = None) -> dict[str, np.ndarray]:
         """Splat, filter and differentiate one view: ``Z``, ``A``, ``thickness`` and per filter
-        ``<f>.Z`` and ``<f>.N`` (H x W x 3)."""
+        ``<f>.Z`` and ``<f>.N`` (H x W x 3).
+
+        With ``ellipsoids`` the particles are drawn as those instead of spheres and every name
+        takes an ``aniso`` prefix: ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N`` (the
+        normals of the unfiltered ellipsoid depth), ``aniso_<f>.Z`` and ``aniso_<f>.N``."""
         t = timings or Timings()
         shape = (camera.height, camera.width)
+        aniso = ellipsoids is not None
+        raw = "aniso." if aniso else ""
         with t("splat"):
-            depth, mask, thickness = self._splat(positions_world, radius, camera)
-            out = {"Z": self._download(depth, shape), "A": self._download(mask, shape),
-                   "thickness": self._download(thickness, shape)}
+            if aniso:
+                depth, mask, thickness, _ = self._splat_ellipsoids(ellipsoids, camera)
+            else:
+                depth, mask, thickness = self._splat(positions_world, radius, camera)
+            out = {f"{raw}Z": self._download(depth, shape), f"{raw}A": self._download(mask, shape),
+                   f"{raw}thickness": self._download(thickness, shape)}
+        if aniso:
+            with t("normals"):
+                out["aniso.N"] = self._download(self._normals(depth, camera), (*shape, 3))
         for name in filters:
             with t(name):
                 d = self._filter(name, depth, camera, radius, p)
+            key = f"aniso_{name}" if aniso else name
             with t("normals"):
-                n = self._normals(d, camera)
-                out[f"{name}.Z"] = self._download(d, shape)
-                out[f"{name}.N"] = self._download(n, (*shape, 3))
+                out[f"{key}.Z"] = self._download(d, shape)
+                out[f"{key}.N"] = self._download(self._normals(d, camera), (*shape, 3))
         return out
 
     def splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> SplatResult:
@@ -171,6 +210,14 @@ class ScreenSpace:
         shape = (camera.height, camera.width)
         depth, mask, thickness = self._splat(positions_world, radius, camera)
         return SplatResult(*(self._download(a, shape) for a in (depth, mask, thickness)))
+
+    def splat_ellipsoids(self, ellipsoids: Ellipsoids, camera: Camera) -> SplatResult:
+        """Nearest ellipsoid-surface depth, mask, summed chord thickness and the analytic view-space
+        normal of the nearest ellipsoid per pixel."""
+        shape = (camera.height, camera.width)
+        depth, mask, thickness, normals = self._splat_ellipsoids(ellipsoids, camera, with_normals=True)
+        return SplatResult(*(self._download(a, shape) for a in (depth, mask, thickness)),
+                           normals=self._download(normals, (*shape, 3)))
 
     def gaussian(self, depth: np.ndarray, sigma_px: float) -> np.ndarray:
         """Naive separable Gaussian blur restricted to fluid pixels (fixed screen-space size)."""

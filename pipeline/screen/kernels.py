@@ -14,6 +14,45 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def ray_ellipsoid(ray: wp.vec3, c: wp.vec3, m: wp.mat33) -> wp.vec2:
+    """(t0, half chord in t) of the ray t * ray against the ellipsoid |M (x - c)| = 1; t0 < 0 on a miss.
+
+    M is symmetric (the inverse of the semi-axis matrix), so the surface in the ray parameter is
+    |t M ray - M c|^2 = 1, a quadratic a t^2 - 2 b t + cc = 0."""
+    md = m * ray
+    mc = m * c
+    a = wp.dot(md, md)
+    b = wp.dot(md, mc)
+    cc = wp.dot(mc, mc) - 1.0
+    disc = b * b - a * cc
+    if disc <= 0.0:
+        return wp.vec2(-1.0, 0.0)
+    sq = wp.sqrt(disc)
+    return wp.vec2((b - sq) / a, sq / a)
+
+
+@wp.func
+def pixel_ray(px: int, py: int, width: int, height: int, focal: float) -> wp.vec3:
+    """View-space ray through a pixel centre, scaled so that its z is -1 (t is the view depth)."""
+    return wp.vec3((float(px) + 0.5 - float(width) * 0.5) / focal, -(float(py) + 0.5 - float(height) * 0.5) / focal,
+                   -1.0)
+
+
+@wp.func
+def splat_bounds(c: wp.vec3, bound: float, focal: float, width: int, height: int, row0: int, row1: int) -> wp.vec4i:
+    """Pixel box (x0, x1, y0, y1), rows clipped to [row0, row1), of a sphere of radius ``bound``
+    around the view-space point c; x1 < x0 when it is behind the camera or off the band."""
+    d = -c[2]
+    if d <= bound:
+        return wp.vec4i(0, -1, 0, -1)
+    cx = float(width) * 0.5 + focal * c[0] / d
+    cy = float(height) * 0.5 - focal * c[1] / d
+    rp = focal * bound / wp.sqrt(d * d - bound * bound) + 1.0
+    return wp.vec4i(wp.max(int(wp.floor(cx - rp)), 0), wp.min(int(wp.ceil(cx + rp)), width - 1),
+                    wp.max(int(wp.floor(cy - rp)), row0), wp.min(int(wp.ceil(cy + rp)), row1 - 1))
+
+
 @wp.kernel
 def splat_spheres(
     offset: int,
@@ -32,21 +71,11 @@ def splat_spheres(
     without races (the min and add are atomic on CUDA, where one launch covers all rows)."""
     i = wp.tid() + offset
     c = centers_view[i]
-    d = -c[2]
-    if d <= radius:
-        return
-    cx = float(width) * 0.5 + focal * c[0] / d
-    cy = float(height) * 0.5 - focal * c[1] / d
-    rp = focal * radius / wp.sqrt(d * d - radius * radius) + 1.0
-    x0 = wp.max(int(wp.floor(cx - rp)), 0)
-    x1 = wp.min(int(wp.ceil(cx + rp)), width - 1)
-    y0 = wp.max(int(wp.floor(cy - rp)), row0)
-    y1 = wp.min(int(wp.ceil(cy + rp)), row1 - 1)
+    box = splat_bounds(c, radius, focal, width, height, row0, row1)
     cc = wp.dot(c, c) - radius * radius
-    for py in range(y0, y1 + 1):
-        ry = -(float(py) + 0.5 - float(height) * 0.5) / focal
-        for px in range(x0, x1 + 1):
-            ray = wp.vec3((float(px) + 0.5 - float(width) * 0.5) / focal, ry, -1.0)
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            ray = pixel_ray(px, py, width, height, focal)
             a = wp.dot(ray, ray)
             b = wp.dot(ray, c)
             disc = b * b - a * cc
@@ -56,6 +85,66 @@ def splat_spheres(
                 idx = py * width + px
                 wp.atomic_min(depth, idx, t0)
                 wp.atomic_add(thickness, idx, 2.0 * sq / wp.sqrt(a))
+
+
+@wp.kernel
+def splat_ellipsoids(
+    offset: int,
+    centers_view: wp.array(dtype=wp.vec3),
+    shapes: wp.array(dtype=wp.mat33),
+    bounds: wp.array(dtype=float),
+    focal: float,
+    width: int,
+    height: int,
+    row0: int,
+    row1: int,
+    depth: wp.array(dtype=float),
+    thickness: wp.array(dtype=float),
+):
+    """Exact ray-ellipsoid splat into the rows [row0, row1): nearest front-surface depth and summed
+    chord length. Ellipsoid i is |shapes[i] (x - c_i)| <= 1 in view space; ``bounds`` are the
+    radii of their bounding spheres, which give each one's pixel box (cost: the pixels covered)."""
+    i = wp.tid() + offset
+    c = centers_view[i]
+    box = splat_bounds(c, bounds[i], focal, width, height, row0, row1)
+    m = shapes[i]
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            ray = pixel_ray(px, py, width, height, focal)
+            hit = ray_ellipsoid(ray, c, m)
+            if hit[0] > 0.0:
+                idx = py * width + px
+                wp.atomic_min(depth, idx, hit[0])
+                wp.atomic_add(thickness, idx, 2.0 * hit[1] * wp.length(ray))
+
+
+@wp.kernel
+def ellipsoid_normals(
+    offset: int,
+    centers_view: wp.array(dtype=wp.vec3),
+    shapes: wp.array(dtype=wp.mat33),
+    bounds: wp.array(dtype=float),
+    focal: float,
+    width: int,
+    height: int,
+    row0: int,
+    row1: int,
+    depth: wp.array(dtype=float),
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Analytic view-space normal M^2 (x - c) of the ellipsoid that won each pixel's depth test
+    (the one whose entry depth equals the splatted depth: the same arithmetic as the splat)."""
+    i = wp.tid() + offset
+    c = centers_view[i]
+    box = splat_bounds(c, bounds[i], focal, width, height, row0, row1)
+    m = shapes[i]
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            ray = pixel_ray(px, py, width, height, focal)
+            hit = ray_ellipsoid(ray, c, m)
+            idx = py * width + px
+            if hit[0] > 0.0 and hit[0] == depth[idx]:
+                normals[idx] = wp.normalize(m * (m * (ray * hit[0] - c)))
 
 
 @wp.kernel

@@ -82,6 +82,33 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     return centres, g, extents
 
 
+@dataclass
+class Ellipsoids:
+    """Particles as ellipsoids |shapes[i] (x - centres[i])| <= 1 (world space), with the radii of
+    their bounding spheres: what ellipsoid splatting draws instead of spheres."""
+
+    centres: np.ndarray   # N x 3
+    shapes: np.ndarray    # N x 3 x 3, symmetric: the inverse of the semi-axis matrix (1/m)
+    bounds: np.ndarray    # N (m)
+
+
+def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
+                        device: str = "cpu", kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> Ellipsoids:
+    """Each particle's ellipsoid from the same anisotropy as the mesh target (Yu & Turk): the
+    smoothed centre, and semi-axes of r times the kernel's principal scales (a full neighbourhood
+    gives scale 1, so an interior particle stays a sphere of radius r, a surface one flattens).
+
+    ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed."""
+    positions = np.asarray(positions, np.float32)
+    if len(positions) == 0:
+        return Ellipsoids(np.zeros((0, 3), np.float32), np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32))
+    centres, g, extents = kernels or anisotropic_kernels(positions, radius, p, launch, device)
+    h = p.aniso_kernel_radius * radius
+    # G = Q diag(1 / s) Q^T / h, extent = h max(s): the splat ellipsoid has semi-axes r s
+    return Ellipsoids(centres.numpy(), (g.numpy() * (h / radius)).astype(np.float32),
+                      (extents.numpy() * (radius / h)).astype(np.float32))
+
+
 def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volume: float, cell: float,
                  launch: Launcher, device: str) -> tuple[np.ndarray, np.ndarray]:
     """The anisotropic density on a grid covering every ellipsoid; returns (grid, origin)."""
@@ -117,14 +144,16 @@ def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, ve
 
 
 def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
-                device: str = "cpu") -> SurfaceMesh:
-    """Anisotropic kernels -> density grid -> marching cubes -> mesh with gradient normals."""
+                device: str = "cpu", kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> SurfaceMesh:
+    """Anisotropic kernels -> density grid -> marching cubes -> mesh with gradient normals.
+
+    ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed."""
     timings = Timings()
     positions = np.asarray(positions, np.float32)
     if len(positions) == 0:
         return _empty()
     with timings("anisotropy"):
-        centres, g, extents = anisotropic_kernels(positions, radius, p, launch, device)
+        centres, g, extents = kernels or anisotropic_kernels(positions, radius, p, launch, device)
     cell = radius / p.grid_cells_per_radius
     c = centres.numpy()
     span = float((c.max(0) - c.min(0)).max() + 2 * extents.numpy().max())
