@@ -339,7 +339,7 @@ class RenderConfig:
     """Output height (px)."""
     camera: Literal["static", "orbit"] = "static"
     """Camera path to render."""
-    method: Literal["refined", "gaussian", "bilateral", "nrf", "mesh"] = "refined"
+    method: Literal["refined", "gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "mesh"] = "refined"
     """Normal-map source."""
     weights: str = "shipped"
     """Generator: 'shipped' (in the package), 'trained' (this config's best checkpoint, training
@@ -382,7 +382,7 @@ class RenderConfig:
 class EvaluateConfig:
     """Held-out metrics (the evaluate stage)."""
 
-    methods: tuple[str, ...] = ("gaussian", "bilateral", "nrf", "refined")
+    methods: tuple[str, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined")
     """Methods compared with the mesh reference."""
     max_frames: int = _f(0, ge=0)
     """Frames per held-out sequence (0: all)."""

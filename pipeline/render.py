@@ -2,7 +2,9 @@
 
 Methods: ``refined`` (bilateral screen-space input through the generator, pixels whose predicted
 normal is shorter than a threshold dropped), ``gaussian``, ``bilateral``, ``nrf`` (screen-space
-filters) and ``mesh`` (the anisotropic marching-cubes surface, the reference).
+filters of sphere splats), ``aniso`` and ``aniso_nrf`` (the particles splatted as their
+anisotropic ellipsoids, normals of that depth unfiltered or after the narrow-range filter) and
+``mesh`` (the anisotropic marching-cubes surface, the reference).
 """
 
 from __future__ import annotations
@@ -13,16 +15,26 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig, RenderConfig
+from pipeline.exr import stack
 from pipeline.model.data import make_input
 from pipeline.model.inference import Refiner
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
-from pipeline.surface import reconstruct
+from pipeline.surface import particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
 from pipeline.views import screen_space_inputs, target_channels
 
-METHODS = ("gaussian", "bilateral", "nrf", "refined", "mesh")
+METHODS = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "mesh")
+ANISO_METHODS = ("aniso", "aniso_nrf")
+
+
+def method_maps(method: str, channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Normals, depth, mask and thickness of a screen-space filter method (``gaussian``,
+    ``bilateral``, ``nrf``, ``aniso``, ``aniso_nrf``) from a view's channels."""
+    splat = "aniso." if method in ANISO_METHODS else ""
+    return {"normals": stack(channels, f"{method}.N."), "depth": channels[f"{method}.Z"],
+            "mask": channels[f"{splat}A"], "thickness": channels[f"{splat}thickness"]}
 
 
 @dataclass
@@ -64,6 +76,13 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    if method in ANISO_METHODS:
+        with t("anisotropy"):
+            ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device)
+        with t("inputs"):
+            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
+                                     aniso_filters=("nrf",) if method == "aniso_nrf" else ())
+        return method_maps(method, ch)
     screen_filter = "bilateral" if method in ("refined", "mesh") else method
     with t("inputs"):
         ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
@@ -81,8 +100,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
             tc = target_channels(mesh, camera, launch)
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
         return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": thickness}
-    n = np.stack([ch[f"{method}.N.{a}"] for a in "XYZ"], -1)
-    return {"normals": n, "depth": ch[f"{method}.Z"], "mask": ch["A"], "thickness": thickness}
+    return method_maps(method, ch)
 
 
 def shade_frame(source: dict[str, np.ndarray], background: np.ndarray, background_depth: np.ndarray,

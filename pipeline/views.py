@@ -1,8 +1,10 @@
 """Everything a frame contributes per camera: screen-space inputs and mesh targets as EXR channels.
 
 Channel names (Blender/Nuke style): ``Z`` raw sphere depth, ``A`` fluid mask, ``thickness``;
-per filter ``<f>.Z`` and ``<f>.N.X/Y/Z`` for ``gaussian``, ``bilateral`` and ``nrf``; the mesh
-target ``target.N.X/Y/Z``, ``target.Z``, ``target.A``. Depths are positive view depths (m).
+per filter ``<f>.Z`` and ``<f>.N.X/Y/Z`` for ``gaussian``, ``bilateral`` and ``nrf``; the same
+of the ellipsoid splat with an ``aniso`` prefix (``aniso.Z``, ``aniso.A``, ``aniso.thickness``,
+``aniso.N.*`` unfiltered, ``aniso_nrf.*``, ``aniso_bilateral.*``); the mesh target
+``target.N.X/Y/Z``, ``target.Z``, ``target.A``. Depths are positive view depths (m).
 """
 
 from __future__ import annotations
@@ -13,10 +15,11 @@ from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
 from pipeline.screen import FILTERS, ScreenSpace
-from pipeline.surface import SurfaceMesh, render_maps
+from pipeline.surface import Ellipsoids, SurfaceMesh, render_maps
 from pipeline.timing import Timings
 
 AXES = ("X", "Y", "Z")
+ANISO_FILTERS = ("nrf", "bilateral")
 
 
 def normal_channels(prefix: str, normals: np.ndarray) -> dict[str, np.ndarray]:
@@ -26,11 +29,19 @@ def normal_channels(prefix: str, normals: np.ndarray) -> dict[str, np.ndarray]:
 
 def screen_space_inputs(positions: np.ndarray, radius: float, camera: Camera, p: DatasetConfig,
                         ss: ScreenSpace, timings: Timings | None = None,
-                        filters: tuple[str, ...] = FILTERS) -> dict[str, np.ndarray]:
-    """Splat, filter and differentiate: the screen-space channels of one view."""
-    out = ss.inputs(positions, radius, camera, p, filters, timings)
-    for name in filters:
-        out.update(normal_channels(f"{name}.", out.pop(f"{name}.N")))
+                        filters: tuple[str, ...] | None = FILTERS, ellipsoids: Ellipsoids | None = None,
+                        aniso_filters: tuple[str, ...] = ANISO_FILTERS) -> dict[str, np.ndarray]:
+    """Splat, filter and differentiate: the screen-space channels of one view (``filters=None``:
+    no sphere splat).
+
+    With ``ellipsoids`` the view is splatted a second time with the particles drawn as those,
+    adding ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N.*`` (unfiltered) and
+    ``aniso_<f>.Z``, ``aniso_<f>.N.*`` for each of ``aniso_filters``."""
+    out = ss.inputs(positions, radius, camera, p, filters, timings) if filters is not None else {}
+    if ellipsoids is not None:
+        out.update(ss.inputs(positions, radius, camera, p, aniso_filters, timings, ellipsoids))
+    for key in [k for k in out if k.endswith(".N")]:
+        out.update(normal_channels(key[:-1], out.pop(key)))
     return out
 
 

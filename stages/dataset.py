@@ -24,7 +24,7 @@ from pipeline.exr import read_exr, write_exr
 from pipeline.frames import frame_name, load_frame, read_sequence_info
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
-from pipeline.surface import reconstruct
+from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
 from pipeline.views import screen_space_inputs, target_channels
 from stages import simulate
@@ -91,16 +91,21 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
             return
         t = Timings()
         x, _ = load_frame(sim.path(frame_name(frame)))
-        mesh = reconstruct(x, info.particle_radius, p, local.launch, device)
+        r = info.particle_radius
+        with t("anisotropy"):
+            kernels = anisotropic_kernels(x, r, p, local.launch, device) if len(x) else None
+            ellipsoids = particle_ellipsoids(x, r, p, local.launch, device, kernels)
+        mesh = reconstruct(x, r, p, local.launch, device, kernels)
         for name, sec in mesh.timings.total.items():
-            t.total[name] += sec
-            t.count[name] += 1
+            if name != "anisotropy":
+                t.total[name] += sec
+                t.count[name] += 1
         if p.keep_meshes:
             with cache.atomic_path(entry.path(f"meshes/{frame_name(frame, 'ply')}")) as tmp:
                 mesh.to_trimesh().export(str(tmp), file_type="ply")
         for cam_path, target in targets.items():
             cam = camera_for_frame(scene.cameras, cam_path, index, len(frames), p.width, p.height)
-            channels = screen_space_inputs(x, info.particle_radius, cam, p, local.ss, t)
+            channels = screen_space_inputs(x, r, cam, p, local.ss, t, ellipsoids=ellipsoids)
             channels.update(target_channels(mesh, cam, local.launch, device, t))
             with t("write"):
                 write_exr(target, channels)

@@ -27,7 +27,7 @@ from pipeline.frames import frame_name, load_frame, read_sequence_info
 from pipeline.metrics import angular_errors, iou, summarize_angles
 from pipeline.parallel import Launcher
 from pipeline.plots import evaluation_figures
-from pipeline.render import normal_source, refine, shade_frame
+from pipeline.render import method_maps, normal_source, refine, shade_frame
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, tonemap
 from pipeline.shading.background import BackgroundRenderer
@@ -61,7 +61,8 @@ def _method_maps(method: str, ch: dict, refiner, auxiliary: bool, threshold: flo
         return n, mask, ch["bilateral.Z"]
     if method == "mesh":
         return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
-    return stack(ch, f"{method}.N."), ch["A"] > 0, ch[f"{method}.Z"]
+    maps = method_maps(method, ch)
+    return maps["normals"], maps["mask"] > 0, maps["depth"]
 
 
 def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner, auxiliary: bool,
@@ -169,7 +170,8 @@ def aggregate(results: list[dict], methods) -> dict:
 
 def write_report(folder: Path, results: list[dict], table: dict, methods, weights: str) -> None:
     """report.md with the overall table, per-sequence tables and figures."""
-    names = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "refined": "refined (cGAN)"}
+    names = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "aniso": "ellipsoids",
+             "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)"}
     lines = ["# Evaluation: normal maps against the anisotropic marching-cubes mesh", "",
              f"Held-out sequences: {len(results)}; generator checkpoint `{weights}`. Errors are over pixels where "
              "both the method and the mesh show fluid; PSNR/SSIM compare the shaded image with the shaded mesh "

@@ -102,12 +102,13 @@ def test_evaluate_smoke(tmp_path):
     assert stage_main("evaluate", evaluate.main, ["--config", config]) == 0
     (entry,) = (tmp_path / "data" / "evaluate").iterdir()
     report = (entry / "report.md").read_text()
-    for method in ("Gaussian", "bilateral", "narrow-range", "refined (cGAN)", "mesh (reference)"):
+    for method in ("Gaussian", "bilateral", "narrow-range", "ellipsoids", "ellipsoids + narrow-range",
+                   "refined (cGAN)", "mesh (reference)"):
         assert method in report
     metrics = json.loads((entry / "metrics.json").read_text())
     # held out: both cameras of merging, the orbit of dam_break, both cameras of the imported frame
     assert len(metrics["sequences"]) == 5
-    for m in ("gaussian", "bilateral", "nrf", "refined"):
+    for m in ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined"):
         row = metrics["overall"][m]
         assert 0 <= row["mean_deg"] <= 180 and 0 <= row["iou"] <= 1 and row["ms_per_frame"] > 0
     assert (entry / "methods.png").exists() and (entry / "examples.png").exists()
@@ -125,3 +126,15 @@ def test_a_render_killed_between_its_exr_and_preview_resumes(tmp_path):
     assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
     assert (entry / "preview" / "frame_0003.png").exists() and (entry / "manifest.json").exists()
     assert (entry / "frames" / "frame_0001.exr").stat().st_mtime_ns == kept, "finished frames are not redone"
+
+
+def test_render_with_ellipsoid_splats(tmp_path):
+    config = _config(tmp_path, _tiny_checkpoint(tmp_path), method="aniso_nrf", comparison=False)
+    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    (entry,) = (tmp_path / "data" / "render").iterdir()
+    ch = read_exr(entry / "frames" / "frame_0003.exr")
+    fluid = ch["mask"] > 0
+    assert fluid.any() and (ch["Z"][fluid] > 0).all()
+    n = np.stack([ch[f"N.{a}"] for a in "XYZ"], -1)[fluid]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
+    assert "anisotropy" in json.loads((entry / "manifest.json").read_text())["ms_per_frame"]
