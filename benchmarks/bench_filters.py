@@ -24,8 +24,7 @@ from pipeline.camera import camera_for_frame
 from pipeline.exr import stack
 from pipeline.frames import frame_name, load_frame, read_sequence_info
 from pipeline.metrics import angular_errors
-from pipeline.model.inference import Refiner
-from pipeline.model.trainer import load_generator
+from pipeline.model.inference import load_refiner
 from pipeline.parallel import Launcher
 from pipeline.render import refine
 from pipeline.screen import ScreenSpace
@@ -48,9 +47,7 @@ def main() -> None:
     wp.config.quiet = True
     run = make_run(parse_args("evaluate", ["--config", args.config]))
     base = run.config.dataset
-    generator, meta = load_generator(ROOT / "pipeline" / "weights" / "refiner.pt")
-    auxiliary = bool(meta["config"]["auxiliary_features"])
-    refiner = Refiner(generator)
+    refiner = load_refiner(ROOT / "pipeline" / "weights" / "refiner.pt")
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
     errors = {(s, m, mode): [] for s in args.sizes for m in METHODS for mode in MODES}
     times = {(s, m, mode): [] for s in args.sizes for m in ("bilateral", "nrf") for mode in MODES}
@@ -78,7 +75,7 @@ def main() -> None:
                         ss.bilateral(ch["Z"], cam, r, p) if m == "bilateral" else ss.narrow_range(ch["Z"], cam, r, p)
                         times[(size, m, mode)].append(time.perf_counter() - start)
                         errors[(size, m, mode)].append(angular_errors(stack(ch, f"{m}.N."), target, fluid & t_mask))
-                    n, mask = refine(refiner, ch, auxiliary, run.config.render.normal_threshold)
+                    n, mask = refine(refiner, ch, run.config.render.normal_threshold)
                     errors[(size, "refined", mode)].append(angular_errors(n, target, mask & t_mask))
                     if mode == "fast" and fluid.any():
                         radii[size].append(float(np.median(cam.focal_px * r / ch["Z"][fluid])))

@@ -309,6 +309,9 @@ class TrainConfig:
     """Content loss norm (the paper prefers L1)."""
     auxiliary_features: bool = True
     """Feed raw and blurred depth with the normal (5 input channels) or the normal alone (3)."""
+    input_splat: Literal["sphere", "ellipsoid"] = "sphere"
+    """Which splat the generator's input is made of: spheres, or the particles' anisotropic
+    ellipsoids (the dataset's ``aniso_bilateral`` and ``aniso`` channels)."""
     train_scenes: tuple[str, ...] = ()
     """Scenes to train on (empty: every configured scene not held out)."""
     gen_base_channels: int = _f(24, ge=4)

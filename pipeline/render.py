@@ -16,7 +16,7 @@ import numpy as np
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig, RenderConfig
 from pipeline.exr import stack
-from pipeline.model.data import make_input
+from pipeline.model.data import input_channels, make_input
 from pipeline.model.inference import Refiner
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
@@ -55,15 +55,15 @@ class RenderedFrame:
         return out
 
 
-def refine(refiner: Refiner, channels: dict[str, np.ndarray], auxiliary: bool = True,
-           threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Refined unit normals and their fluid mask from a view's screen-space channels.
 
     Pixels whose predicted normal is shorter than ``threshold`` are dropped as noise (Choi et al.,
     section 3.3), and so are pixels without splatted fluid (there is no depth to shade there).
     """
-    fluid = channels["A"] > 0
-    n = refiner(make_input(channels, auxiliary), fluid)
+    names = input_channels(refiner.splat)
+    fluid = channels[names.fluid] > 0
+    n = refiner(make_input(channels, refiner.auxiliary, refiner.splat), fluid)
     length = np.linalg.norm(n, axis=-1)
     mask = (length >= threshold) & fluid
     return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
@@ -71,29 +71,33 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], auxiliary: bool = 
 
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
                   ss: ScreenSpace, launch: Launcher, refiner: Refiner | None = None, threshold: float = 0.5,
-                  auxiliary: bool = True, timings: Timings | None = None) -> dict[str, np.ndarray]:
+                  timings: Timings | None = None) -> dict[str, np.ndarray]:
     """Normals, depth, mask and thickness of a method for one view."""
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
-    if method in ANISO_METHODS:
+    if method == "refined" and refiner is None:
+        raise ValueError("the refined method needs a generator")
+    if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
         with t("anisotropy"):
             ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device)
+        aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         with t("inputs"):
             ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
-                                     aniso_filters=("nrf",) if method == "aniso_nrf" else ())
-        return method_maps(method, ch)
-    screen_filter = "bilateral" if method in ("refined", "mesh") else method
-    with t("inputs"):
-        ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
-    thickness = ch["thickness"]
+                                     aniso_filters=aniso_filter)
+        if method != "refined":
+            return method_maps(method, ch)
+    else:
+        screen_filter = "bilateral" if method in ("refined", "mesh") else method
+        with t("inputs"):
+            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
     if method == "refined":
-        if refiner is None:
-            raise ValueError("the refined method needs a generator")
+        names = input_channels(refiner.splat)
         with t("refiner"):
-            n, mask = refine(refiner, ch, auxiliary, threshold)
-        return {"normals": n, "depth": np.where(mask, ch["bilateral.Z"], 0.0),
-                "mask": mask.astype(np.float32), "thickness": thickness}
+            n, mask = refine(refiner, ch, threshold)
+        return {"normals": n, "depth": np.where(mask, ch[names.blurred], 0.0), "mask": mask.astype(np.float32),
+                "thickness": ch[names.thickness]}
+    thickness = ch["thickness"]
     if method == "mesh":
         with t("mesh"):
             mesh = reconstruct(positions, radius, filters, launch)

@@ -25,6 +25,7 @@ from pipeline.device import warp_device
 from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, read_sequence_info
 from pipeline.metrics import angular_errors, iou, summarize_angles
+from pipeline.model.data import input_channels
 from pipeline.parallel import Launcher
 from pipeline.plots import evaluation_figures
 from pipeline.render import method_maps, normal_source, refine, shade_frame
@@ -54,18 +55,18 @@ def sequences(run: Run) -> list[tuple[SceneConfig, str]]:
     return out
 
 
-def _method_maps(method: str, ch: dict, refiner, auxiliary: bool, threshold: float):
+def _method_maps(method: str, ch: dict, refiner, threshold: float):
     """(normals, mask, depth) of a method from a dataset frame's channels."""
     if method == "refined":
-        n, mask = refine(refiner, ch, auxiliary, threshold)
-        return n, mask, ch["bilateral.Z"]
+        n, mask = refine(refiner, ch, threshold)
+        return n, mask, ch[input_channels(refiner.splat).blurred]
     if method == "mesh":
         return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
     maps = method_maps(method, ch)
     return maps["normals"], maps["mask"] > 0, maps["depth"]
 
 
-def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner, auxiliary: bool,
+def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner,
                       methods: tuple[str, ...]) -> dict:
     """Per-method metrics of one held-out sequence, plus per-frame errors for the figures."""
     p, rp = run.config.evaluate, run.config.render
@@ -92,7 +93,7 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner, a
             bg = shader.fill_sky(bg, bg_depth, cam, rp)
             target = stack(ch, "target.N.")
             t_mask = ch["target.A"] > 0
-            maps = {m: _method_maps(m, ch, refiner, auxiliary, rp.normal_threshold) for m in (*methods, "mesh")}
+            maps = {m: _method_maps(m, ch, refiner, rp.normal_threshold) for m in (*methods, "mesh")}
             shaded = {}
             for m, (n, mask, depth) in maps.items():
                 src = {"normals": n.astype(np.float32), "depth": np.where(mask, depth, 0).astype(np.float32),
@@ -113,7 +114,7 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner, a
     finally:
         background.close()
         shader.close()
-    timings = time_methods(run, scene, camera_path, (*methods, "mesh"), refiner, auxiliary)
+    timings = time_methods(run, scene, camera_path, (*methods, "mesh"), refiner)
     result = {}
     for m in methods:
         steps = np.abs(np.diff(np.array(per_frame[m])))
@@ -128,7 +129,7 @@ def evaluate_sequence(run: Run, scene: SceneConfig, camera_path: str, refiner, a
             "examples": examples}
 
 
-def time_methods(run: Run, scene: SceneConfig, camera_path: str, methods, refiner, auxiliary) -> dict[str, float]:
+def time_methods(run: Run, scene: SceneConfig, camera_path: str, methods, refiner) -> dict[str, float]:
     """Wall milliseconds per frame of each method from particles to its normal map (first frames)."""
     sim = simulate.ensure(run, scene)
     info = read_sequence_info(sim.dir)
@@ -144,7 +145,7 @@ def time_methods(run: Run, scene: SceneConfig, camera_path: str, methods, refine
                 cam = camera_for_frame(scene.cameras, camera_path, i, info.frames, p.width, p.height)
                 with t("total"):
                     normal_source(m, x, info.particle_radius, cam, p, ss, launch, refiner,
-                                  run.config.render.normal_threshold, auxiliary)
+                                  run.config.render.normal_threshold)
             out[m] = round(t.mean_ms("total"), 1)
     finally:
         ss.close()
@@ -202,7 +203,7 @@ def main(argv: list[str] | None = None) -> None:
     """Entry point of ``make evaluate``."""
     run = make_run(parse_args("evaluate", argv))
     methods = tuple(run.config.evaluate.methods)
-    refiner, auxiliary, weights = render.load_refiner(run) if "refined" in methods else (None, True, "")
+    refiner, weights = render.load_refiner(run) if "refined" in methods else (None, "")
     seqs = sequences(run)
     keys = {f"{s.name}/{c}": dataset.ensure(run, s).key for s, c in seqs}
     entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
@@ -213,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     entry.begin(force=run.force)
     start = time.perf_counter()
-    results = [evaluate_sequence(run, s, c, refiner, auxiliary, methods) for s, c in seqs]
+    results = [evaluate_sequence(run, s, c, refiner, methods) for s, c in seqs]
     table = aggregate(results, methods)
     evaluation_figures(entry.dir, results, table, methods)
     write_report(entry.dir, results, table, methods, weights)

@@ -59,17 +59,15 @@ def resolve_weights(run: Run) -> Path:
 
 
 def load_refiner(run: Run):
-    """(refiner, whether it takes depth features, a content hash of the checkpoint)."""
-    from pipeline.model.inference import Refiner
-    from pipeline.model.trainer import load_generator
+    """(refiner, a content hash of the checkpoint)."""
+    from pipeline.model.inference import load_refiner as load
 
     path = resolve_weights(run)
     try:
-        generator, meta = load_generator(path)
+        refiner = load(path)
     except Exception as exc:
         raise StageError(f"cannot load generator checkpoint {path} ({exc})") from None
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()[:12]
-    return Refiner(generator), bool(meta["config"]["auxiliary_features"]), digest
+    return refiner, hashlib.sha256(path.read_bytes()).hexdigest()[:12]
 
 
 def render_entry(run: Run, scene: SceneConfig, sim_key: str, weights: str) -> cache.CacheEntry:
@@ -89,7 +87,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     sim = simulate.ensure(run, scene)
     info = read_sequence_info(sim.dir)
     methods = set(COMPARED if p.comparison else ()) | {p.method}
-    refiner, auxiliary, weights = (load_refiner(run) if "refined" in methods else (None, True, ""))
+    refiner, weights = load_refiner(run) if "refined" in methods else (None, "")
     entry = render_entry(run, scene, sim.key, weights)
     if entry.is_complete() and not force:
         log.info("render %s: cached (%s)", scene.name, entry.dir)
@@ -136,7 +134,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
                 for method in [p.method] + [m for m in COMPARED if p.comparison and m != p.method]:
                     t = timings if method == p.method else Timings()
                     src = normal_source(method, x, info.particle_radius, cam, run.config.dataset, ss, launch,
-                                        refiner, p.normal_threshold, auxiliary, t)
+                                        refiner, p.normal_threshold, t)
                     shaded[method] = shade_frame(src, bg, bg_depth, cam, p, shader, t)
                 if not shaded[p.method].mask.any():
                     no_fluid.append(frame)

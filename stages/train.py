@@ -102,8 +102,9 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
         torch.set_num_threads(cfg.threads)
     aux = cfg.auxiliary_features
     log.info("train: loading %d training and %d validation frames", len(train_paths), len(val_paths))
-    frames = [load_frame(p, aux) for p in tqdm(train_paths, desc="load", unit="frame", leave=False)]
-    val_frames: list[Frame] = [load_frame(p, aux) for p in _spread(val_paths, cfg.val_frames)] or frames[:2]
+    splat = cfg.input_splat
+    frames = [load_frame(p, aux, splat) for p in tqdm(train_paths, desc="load", unit="frame", leave=False)]
+    val_frames: list[Frame] = [load_frame(p, aux, splat) for p in _spread(val_paths, cfg.val_frames)] or frames[:2]
     crop = min(cfg.crop, *frames[0].inputs.shape[1:])
     steps = max(1, math.ceil(len(frames) * cfg.crops_per_frame / cfg.batch_size))
     g_params = sum(p.numel() for p in refiner.generator.parameters())

@@ -30,9 +30,9 @@ def _config(tmp_path, weights: str, **render_opts) -> str:
     return str(path)
 
 
-def _tiny_checkpoint(tmp_path) -> str:
-    cfg = TrainConfig(gen_base_channels=8, gen_res_blocks=1, disc_base_channels=8, disc_layers=2)
-    path = tmp_path / "tiny.pt"
+def _tiny_checkpoint(tmp_path, splat: str = "sphere") -> str:
+    cfg = TrainConfig(gen_base_channels=8, gen_res_blocks=1, disc_base_channels=8, disc_layers=2, input_splat=splat)
+    path = tmp_path / f"tiny_{splat}.pt"
     torch.save(Refiner(cfg).state(0), path)
     return str(path)
 
@@ -138,3 +138,16 @@ def test_render_with_ellipsoid_splats(tmp_path):
     n = np.stack([ch[f"N.{a}"] for a in "XYZ"], -1)[fluid]
     np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
     assert "anisotropy" in json.loads((entry / "manifest.json").read_text())["ms_per_frame"]
+
+
+def test_refiner_trained_on_ellipsoid_splats_renders_from_them(tmp_path):
+    """A checkpoint whose config says input_splat: ellipsoid gets ellipsoid-splat inputs (its mask is
+    the ellipsoid splat's, which covers more than the spheres')."""
+    results = {}
+    for splat in ("sphere", "ellipsoid"):
+        (tmp_path / splat).mkdir()
+        config = _config(tmp_path / splat, _tiny_checkpoint(tmp_path, splat), comparison=False, normal_threshold=0.0)
+        assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+        (entry,) = (tmp_path / splat / "data" / "render").iterdir()
+        results[splat] = read_exr(entry / "frames" / "frame_0003.exr")["mask"]
+    assert results["ellipsoid"].sum() != results["sphere"].sum()

@@ -1,7 +1,9 @@
 """Refiner training data: dataset-stage EXR frames as tensors, random crops, flips.
 
 Input channels (in order): the bilateral screen-space normal (3), then, with auxiliary features,
-the raw sphere depth and the bilateral (blurred) depth. Depths are normalised per frame as
+the raw splat depth and the bilateral (blurred) depth, of the sphere splat (``splat="sphere"``:
+``bilateral.N.*``, ``Z``, ``bilateral.Z``) or of the ellipsoid splat (``"ellipsoid"``:
+``aniso_bilateral.N.*``, ``aniso.Z``, ``aniso_bilateral.Z``). Depths are normalised per frame as
 (d - mu) / sigma with mu, sigma the mean and standard deviation of the raw depth over fluid
 pixels, and 0 on background: scale-free, so scenes of any size and distance look alike, while
 the difference between raw and blurred depth (the bumps) survives. Target: the mesh normal (3),
@@ -11,14 +13,33 @@ the zero vector where the mesh shows no fluid.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from pipeline.exr import read_exr
 
-NORMAL = ["bilateral.N.X", "bilateral.N.Y", "bilateral.N.Z"]
-DEPTHS = ["Z", "bilateral.Z"]
+Splat = Literal["sphere", "ellipsoid"]
 TARGET = ["target.N.X", "target.N.Y", "target.N.Z"]
+
+
+@dataclass(frozen=True)
+class InputChannels:
+    """The dataset channels a refiner input is made of."""
+
+    normal: list[str]
+    raw: str
+    blurred: str
+    fluid: str
+    thickness: str
+
+
+def input_channels(splat: Splat = "sphere") -> InputChannels:
+    """Channel names of the generator input for a splat kind."""
+    pre = {"sphere": "", "ellipsoid": "aniso_"}[splat]
+    raw = {"sphere": "", "ellipsoid": "aniso."}[splat]
+    return InputChannels([f"{pre}bilateral.N.{a}" for a in "XYZ"], f"{raw}Z", f"{pre}bilateral.Z", f"{raw}A",
+                         f"{raw}thickness")
 
 
 def input_channel_count(auxiliary: bool) -> int:
@@ -26,12 +47,13 @@ def input_channel_count(auxiliary: bool) -> int:
     return 5 if auxiliary else 3
 
 
-def make_input(channels: dict[str, np.ndarray], auxiliary: bool = True) -> np.ndarray:
+def make_input(channels: dict[str, np.ndarray], auxiliary: bool = True, splat: Splat = "sphere") -> np.ndarray:
     """C x H x W float32 generator input from a frame's channels."""
-    normal = np.stack([channels[c] for c in NORMAL])
+    names = input_channels(splat)
+    normal = np.stack([channels[c] for c in names.normal])
     if not auxiliary:
         return normal.astype(np.float32)
-    raw, blurred = channels["Z"], channels["bilateral.Z"]
+    raw, blurred = channels[names.raw], channels[names.blurred]
     fluid = raw > 0
     if fluid.any():
         mu = float(raw[fluid].mean())
@@ -51,10 +73,11 @@ class Frame:
     name: str
 
 
-def load_frame(path, auxiliary: bool = True) -> Frame:
+def load_frame(path, auxiliary: bool = True, splat: Splat = "sphere") -> Frame:
     """Read the channels a training example needs from a dataset EXR."""
-    ch = read_exr(path, NORMAL + DEPTHS + TARGET)
-    return Frame(make_input(ch, auxiliary), np.stack([ch[c] for c in TARGET]).astype(np.float32), str(path))
+    names = input_channels(splat)
+    ch = read_exr(path, [*names.normal, names.raw, names.blurred, *TARGET])
+    return Frame(make_input(ch, auxiliary, splat), np.stack([ch[c] for c in TARGET]).astype(np.float32), str(path))
 
 
 def flip_horizontal(arr: np.ndarray, normal_slices: tuple[slice, ...]) -> np.ndarray:

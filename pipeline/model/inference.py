@@ -18,6 +18,7 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from pipeline.model.data import Splat
 from pipeline.model.networks import Generator
 
 
@@ -47,9 +48,14 @@ def fluid_window(fluid: np.ndarray, margin: int, stride: int) -> tuple[int, int,
 
 
 class Refiner:
-    """A generator prepared for inference: ``refiner(inputs, fluid) -> H x W x 3`` normals."""
+    """A generator prepared for inference: ``refiner(inputs, fluid) -> H x W x 3`` normals.
 
-    def __init__(self, generator: Generator, device: str | torch.device = "cpu", crop: bool = True):
+    It also carries how its input is made (``auxiliary`` depth features, the ``splat`` kind), as
+    recorded in the checkpoint's training config."""
+
+    def __init__(self, generator: Generator, device: str | torch.device = "cpu", crop: bool = True,
+                 auxiliary: bool = True, splat: Splat = "sphere"):
+        self.auxiliary, self.splat = auxiliary, splat
         self.device = torch.device(device)
         self.stride = generator.stride
         self.margin = generator.receptive_radius()
@@ -77,3 +83,13 @@ class Refiner:
         y = self.net(x)[0, :, : y1 - y0, : x1 - x0]
         out[y0:y1, x0:x1] = y.permute(1, 2, 0).float().cpu().numpy()
         return out
+
+
+def load_refiner(path, device: str | torch.device = "cpu") -> Refiner:
+    """A render-time refiner from a training checkpoint (``weights_only=True``)."""
+    from pipeline.model.trainer import load_generator
+
+    generator, meta = load_generator(path, str(device))
+    cfg = meta["config"]
+    return Refiner(generator, device, auxiliary=bool(cfg["auxiliary_features"]),
+                   splat=cfg.get("input_splat", "sphere"))
