@@ -23,7 +23,7 @@ from pipeline.parallel import Launcher
 from pipeline.particles import read_particles
 from pipeline.screen import ScreenSpace
 from pipeline.sim.pbf import PBFSolver
-from pipeline.surface import reconstruct, render_maps
+from pipeline.surface import particle_ellipsoids, reconstruct, render_maps
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -71,15 +71,21 @@ def main() -> None:
     frames[f"PBF dam break ({len(x50):,})"] = (x50, r50)
 
     print(f"screen-space inputs, ms per frame (2 threads, {p.filter_mode} filters)")
-    print(f"{'frame':34s} {'size':>6s} {'splat':>7s} {'bilat':>7s} {'nrf':>7s} {'normals':>8s}")
+    print(f"{'frame':34s} {'size':>6s} {'splat':>7s} {'bilat':>7s} {'nrf':>7s} {'normals':>8s} {'ellipsoids':>10s} "
+          f"{'ell. splat':>10s}")
     for name, (x, r) in frames.items():
+        t_ell, ell = _ms(lambda x=x, r=r: particle_ellipsoids(x, r, p, launch))
         for size in (512, 1024):
             cam = _camera_for(x, size)
             t_splat, sp = _ms(lambda x=x, r=r, cam=cam: ss.splat(x, r, cam))
             t_bil, d = _ms(lambda sp=sp, cam=cam, r=r: ss.bilateral(sp.depth, cam, r, p))
             t_nrf, _ = _ms(lambda sp=sp, cam=cam, r=r: ss.narrow_range(sp.depth, cam, r, p))
             t_n, _ = _ms(lambda d=d, cam=cam: ss.normals(d, cam))
-            print(f"{name:34s} {size:6d} {t_splat:7.1f} {t_bil:7.1f} {t_nrf:7.1f} {t_n:8.1f}")
+            t_esplat, _ = _ms(lambda ell=ell, cam=cam: ss.splat_ellipsoids(ell, cam))
+            print(f"{name:34s} {size:6d} {t_splat:7.1f} {t_bil:7.1f} {t_nrf:7.1f} {t_n:8.1f} {t_ell:10.1f} "
+                  f"{t_esplat:10.1f}")
+    print("(ellipsoids: the anisotropy per frame, shared by every view; ell. splat: depth, thickness and the "
+          "analytic normals of the ellipsoids)")
 
     try:
         import pysplashsurf

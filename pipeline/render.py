@@ -21,9 +21,9 @@ from pipeline.model.inference import Refiner
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
-from pipeline.surface import particle_ellipsoids, reconstruct
+from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
-from pipeline.views import screen_space_inputs, target_channels
+from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 
 METHODS = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "mesh")
 ANISO_METHODS = ("aniso", "aniso_nrf")
@@ -100,8 +100,11 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     thickness = ch["thickness"]
     if method == "mesh":
         with t("mesh"):
-            mesh = reconstruct(positions, radius, filters, launch)
-            tc = target_channels(mesh, camera, launch)
+            if filters.target == "raytrace":
+                kernels = anisotropic_kernels(np.asarray(positions, np.float32), radius, filters, launch, ss.device)
+                tc = raytraced_target_channels(kernels, radius, filters, camera, ss, launch, ss.device)
+            else:
+                tc = target_channels(reconstruct(positions, radius, filters, launch), camera, launch)
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
         return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": thickness}
     return method_maps(method, ch)

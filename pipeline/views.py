@@ -15,7 +15,7 @@ from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
 from pipeline.screen import FILTERS, ScreenSpace
-from pipeline.surface import Ellipsoids, SurfaceMesh, render_maps
+from pipeline.surface import Ellipsoids, SurfaceMesh, raytrace_maps, render_maps
 from pipeline.timing import Timings
 
 AXES = ("X", "Y", "Z")
@@ -51,4 +51,14 @@ def target_channels(mesh: SurfaceMesh, camera: Camera, launch: Launcher, device:
     t = timings or Timings()
     with t("raycast"):
         n, d, m = render_maps(mesh, camera, launch, device)
+    return {**normal_channels("target.", n), "target.Z": d, "target.A": m}
+
+
+def raytraced_target_channels(kernels, radius: float, p: DatasetConfig, camera: Camera, ss: ScreenSpace,
+                              launch: Launcher, device: str = "cpu",
+                              timings: Timings | None = None) -> dict[str, np.ndarray]:
+    """The same target channels, ray-marched through the anisotropic density (no mesh)."""
+    t = timings or Timings()
+    with t("raytrace"):
+        n, d, m, _ = raytrace_maps(kernels, radius, p, camera, ss, launch, device)
     return {**normal_channels("target.", n), "target.Z": d, "target.A": m}

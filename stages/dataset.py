@@ -26,7 +26,7 @@ from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
-from pipeline.views import screen_space_inputs, target_channels
+from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 from stages import simulate
 from stages.common import Run, make_run, parse_args, stage_main
 
@@ -93,20 +93,25 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
         x, _ = load_frame(sim.path(frame_name(frame)))
         r = info.particle_radius
         with t("anisotropy"):
-            kernels = anisotropic_kernels(x, r, p, local.launch, device) if len(x) else None
+            kernels = anisotropic_kernels(x, r, p, local.launch, device)
             ellipsoids = particle_ellipsoids(x, r, p, local.launch, device, kernels)
-        mesh = reconstruct(x, r, p, local.launch, device, kernels)
-        for name, sec in mesh.timings.total.items():
-            if name != "anisotropy":
-                t.total[name] += sec
-                t.count[name] += 1
+        mesh = None
+        if p.target == "mesh" or p.keep_meshes:
+            mesh = reconstruct(x, r, p, local.launch, device, kernels)
+            for name, sec in mesh.timings.total.items():
+                if name != "anisotropy":
+                    t.total[name] += sec
+                    t.count[name] += 1
         if p.keep_meshes:
             with cache.atomic_path(entry.path(f"meshes/{frame_name(frame, 'ply')}")) as tmp:
                 mesh.to_trimesh().export(str(tmp), file_type="ply")
         for cam_path, target in targets.items():
             cam = camera_for_frame(scene.cameras, cam_path, index, len(frames), p.width, p.height)
             channels = screen_space_inputs(x, r, cam, p, local.ss, t, ellipsoids=ellipsoids)
-            channels.update(target_channels(mesh, cam, local.launch, device, t))
+            if p.target == "raytrace":
+                channels.update(raytraced_target_channels(kernels, r, p, cam, local.ss, local.launch, device, t))
+            else:
+                channels.update(target_channels(mesh, cam, local.launch, device, t))
             with t("write"):
                 write_exr(target, channels)
         with lock:

@@ -1,13 +1,16 @@
-"""Mesh targets: anisotropic-kernel density (Yu & Turk 2013), marching cubes, ray-cast maps.
+"""Surface targets: anisotropic-kernel density (Yu & Turk 2013), marching cubes, ray-cast maps.
 
 ``reconstruct`` turns particle positions into a triangle mesh with smooth vertex normals;
 ``render_maps`` ray-casts it from a camera into view-space normal, depth and mask maps.
+``raytrace_maps`` skips the mesh: it marches each pixel's ray through the density itself to the
+iso-level (Biedert et al. 2018), so the target has no grid facets at any resolution.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -18,6 +21,9 @@ from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
 from pipeline.surface import kernels as K
 from pipeline.timing import Timings
+
+if TYPE_CHECKING:
+    from pipeline.screen import ScreenSpace
 
 
 @dataclass
@@ -69,6 +75,9 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
                         device: str) -> tuple[wp.array, wp.array, wp.array]:
     """Smoothed centres, kernel matrices and ellipsoid extents (Warp arrays)."""
     n = len(positions)
+    if n == 0:
+        return (wp.zeros(0, dtype=wp.vec3, device=device), wp.zeros(0, dtype=wp.mat33, device=device),
+                wp.zeros(0, dtype=float, device=device))
     h = p.aniso_kernel_radius * radius
     support = 2.0 * h
     x = wp.array(positions.astype(np.float32), dtype=wp.vec3, device=device)
@@ -102,11 +111,16 @@ def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, 
     positions = np.asarray(positions, np.float32)
     if len(positions) == 0:
         return Ellipsoids(np.zeros((0, 3), np.float32), np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32))
-    centres, g, extents = kernels or anisotropic_kernels(positions, radius, p, launch, device)
-    h = p.aniso_kernel_radius * radius
-    # G = Q diag(1 / s) Q^T / h, extent = h max(s): the splat ellipsoid has semi-axes r s
-    return Ellipsoids(centres.numpy(), (g.numpy() * (h / radius)).astype(np.float32),
-                      (extents.numpy() * (radius / h)).astype(np.float32))
+    return kernel_ellipsoids(kernels or anisotropic_kernels(positions, radius, p, launch, device), p)
+
+
+def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetConfig) -> Ellipsoids:
+    """The particle ellipsoids of ``anisotropic_kernels``' output: G = Q diag(1 / s) Q^T / h and
+    extent = h max(s), so with h = scale r the ellipsoid of semi-axes r s is |(scale G)(x - c)| = 1."""
+    centres, g, extents = kernels
+    scale = p.aniso_kernel_radius
+    return Ellipsoids(centres.numpy(), (g.numpy() * scale).astype(np.float32),
+                      (extents.numpy() / scale).astype(np.float32))
 
 
 def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volume: float, cell: float,
@@ -193,3 +207,42 @@ def render_maps(mesh: SurfaceMesh, camera: Camera, launch: Launcher,
                                    wp.mat33(*rot.ravel()), w, h, camera.focal_px, 1.0e6, out_n, out_d])
     depth = out_d.numpy().reshape(h, w)
     return out_n.numpy().reshape(h, w, 3), depth, (depth > 0).astype(np.float32)
+
+
+def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p: DatasetConfig, camera: Camera,
+                  ss: ScreenSpace, launch: Launcher, device: str = "cpu",
+                  with_thickness: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Ray-march the anisotropic density of ``anisotropic_kernels``' output: view-space normals
+    (H x W x 3, the analytic -grad phi), view depth, mask and (with ``with_thickness``) the length
+    of each ray inside the surface.
+
+    Each ray starts where it enters the first kernel support (a splat of the support spheres), or
+    ``raytrace_start_margin_radii`` before the particle ellipsoids' splat when the density there is
+    still below the iso-level, steps ``raytrace_step_radii`` particle radii, and refines the first
+    iso crossing by bisection. Only the kernels within the largest support of each sample are summed
+    (a hash grid)."""
+    w, h = camera.width, camera.height
+    centres, g, extents = kernels
+    c, e = centres.numpy(), extents.numpy()
+    empty = np.zeros((h, w), np.float32)
+    if len(c) == 0:
+        return np.zeros((h, w, 3), np.float32), empty, empty, empty
+    supports = Ellipsoids(c, (np.eye(3, dtype=np.float32)[None] / e[:, None, None]).astype(np.float32), e)
+    t_start = ss.splat_ellipsoids(supports, camera).depth
+    t_guess = ss.splat_ellipsoids(kernel_ellipsoids(kernels, p), camera).depth - p.raytrace_start_margin_radii * radius
+    reach = float(e.max())
+    grid = _hash_grid(centres, c, reach, device)
+    amplitude = (2.0 * radius) ** 3 * K.POLY6_NORM
+    out_n = wp.zeros(w * h, dtype=wp.vec3, device=device)
+    out_d = wp.zeros(w * h, dtype=float, device=device)
+    out_t = wp.zeros(w * h, dtype=float, device=device)
+    rot = camera.cam_to_world[:3, :3].astype(np.float32)
+    launch(K.raymarch_density, w * h, [
+        grid.id, centres, g, reach, amplitude, p.iso_level, wp.vec3(*camera.eye.astype(np.float32)),
+        wp.mat33(*rot.ravel()), w, h, camera.focal_px, wp.array(t_start.ravel(), dtype=float, device=device),
+        wp.array(t_guess.ravel(), dtype=float, device=device),
+        wp.vec3(*(c.min(0) - reach)), wp.vec3(*(c.max(0) + reach)), p.raytrace_step_radii * radius,
+        p.raytrace_bisections, int(with_thickness), out_n, out_d, out_t])
+    depth = out_d.numpy().reshape(h, w)
+    return (out_n.numpy().reshape(h, w, 3), depth, (depth > 0).astype(np.float32),
+            out_t.numpy().reshape(h, w))

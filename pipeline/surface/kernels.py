@@ -197,3 +197,137 @@ def density_gradient_normals(
         normals_out[k] = -grad / ln
     else:
         normals_out[k] = wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.func
+def density_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+               reach: float, amplitude: float, x: wp.vec3) -> float:
+    """phi(x) = sum_j V det(G_j) P(|G_j (x - c_j)|), with amplitude = V times the poly6 norm."""
+    phi = float(0.0)
+    q = wp.hash_grid_query(grid, x, reach)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        G = kernel_g[j]
+        u = G * (x - centres[j])
+        q2 = wp.dot(u, u)
+        if q2 < 1.0:
+            t = 1.0 - q2
+            phi += wp.determinant(G) * t * t * t
+    return phi * amplitude
+
+
+@wp.func
+def density_gradient_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+                        reach: float, x: wp.vec3) -> wp.vec3:
+    """The direction of grad phi at x (without the constant V times the poly6 norm)."""
+    grad = wp.vec3(0.0, 0.0, 0.0)
+    q = wp.hash_grid_query(grid, x, reach)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        G = kernel_g[j]
+        u = G * (x - centres[j])
+        q2 = wp.dot(u, u)
+        if q2 < 1.0:
+            t = 1.0 - q2
+            grad += (wp.transpose(G) * u) * (-6.0 * wp.determinant(G) * t * t)
+    return grad
+
+
+@wp.kernel
+def raymarch_density(
+    offset: int,
+    grid: wp.uint64,
+    centres: wp.array(dtype=wp.vec3),
+    kernel_g: wp.array(dtype=wp.mat33),
+    reach: float,
+    amplitude: float,
+    iso: float,
+    eye: wp.vec3,
+    cam_to_world: wp.mat33,
+    width: int,
+    height: int,
+    focal: float,
+    t_start: wp.array(dtype=float),
+    t_guess: wp.array(dtype=float),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    step: float,
+    bisections: int,
+    with_thickness: int,
+    normal_out: wp.array(dtype=wp.vec3),
+    depth_out: wp.array(dtype=float),
+    thickness_out: wp.array(dtype=float),
+):
+    """March each pixel's ray through the density to its first crossing of the iso-level.
+
+    The march starts where the ray enters the first kernel support (``t_start``, a view depth from
+    splatting the supports; 0 = the ray meets none) and ends where it leaves the box [lo, hi] of
+    all supports. Where ``t_guess`` (a depth known to lie before the surface in practice: the
+    particle ellipsoids' splat depth less a margin) is later, the march starts there instead, unless
+    the density there is already above the iso-level, in which case it backs off to ``t_start``.
+    A crossing found between two samples ``step`` apart is refined by bisection; the normal is
+    -grad phi there (analytic, view space). With ``with_thickness`` the march goes on to the box's
+    end and sums the length of the ray inside the surface."""
+    idx = wp.tid() + offset
+    normal_out[idx] = wp.vec3(0.0, 0.0, 0.0)
+    depth_out[idx] = 0.0
+    thickness_out[idx] = 0.0
+    t0 = t_start[idx]
+    if t0 <= 0.0:
+        return
+    row = idx // width
+    col = idx - row * width
+    ray_view = wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal,
+                       -(float(row) + 0.5 - float(height) * 0.5) / focal, -1.0)
+    d = cam_to_world * ray_view  # |d| = |ray_view|: t stays the view depth
+    # exit of the box of all supports (slab test)
+    t_end = float(1.0e30)
+    for axis in range(3):
+        if d[axis] > 1.0e-12:
+            t_end = wp.min(t_end, (hi[axis] - eye[axis]) / d[axis])
+        elif d[axis] < -1.0e-12:
+            t_end = wp.min(t_end, (lo[axis] - eye[axis]) / d[axis])
+    t = t0
+    guess = t_guess[idx]
+    if with_thickness == 0 and guess > t0:
+        if density_at(grid, centres, kernel_g, reach, amplitude, eye + d * guess) < iso:
+            t = guess
+    inside = bool(False)
+    t_hit = float(0.0)
+    thick = float(0.0)
+    while t < t_end:
+        t_next = t + step
+        phi = density_at(grid, centres, kernel_g, reach, amplitude, eye + d * t_next)
+        now_inside = phi >= iso
+        if now_inside != inside:
+            # bisection for the crossing in (t, t_next]
+            ta = t
+            tb = t_next
+            for _ in range(bisections):
+                tm = 0.5 * (ta + tb)
+                if (density_at(grid, centres, kernel_g, reach, amplitude, eye + d * tm) >= iso) == now_inside:
+                    tb = tm
+                else:
+                    ta = tm
+            crossing = 0.5 * (ta + tb)
+            if now_inside:
+                if t_hit == 0.0:
+                    t_hit = crossing
+                    if with_thickness == 0:
+                        break
+                thick -= crossing
+            else:
+                thick += crossing
+            inside = now_inside
+        t = t_next
+    if t_hit == 0.0:
+        return
+    if inside:
+        thick += t_end
+    grad = density_gradient_at(grid, centres, kernel_g, reach, eye + d * t_hit)
+    n = wp.transpose(cam_to_world) * (-grad)
+    ln = wp.length(n)
+    if ln > 0.0:
+        normal_out[idx] = n / ln
+    depth_out[idx] = t_hit
+    thickness_out[idx] = thick * wp.length(d)
