@@ -12,7 +12,7 @@ STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup test lint demo simulate dataset train render evaluate export bench cache-ls clean-cache
+.PHONY: setup test lint demo simulate dataset train ship render evaluate export bench cache-ls clean-cache
 
 setup: $(VENV)/.installed
 
@@ -50,6 +50,10 @@ dataset: setup
 
 train: setup
 	$(PY) -m stages.train $(STAGE_ARGS)
+
+# make the config's trained refiner the shipped one (pipeline/weights/refiner.pt and its card)
+ship: setup
+	$(PY) -m stages.ship $(STAGE_ARGS)
 
 render: setup
 	$(PY) -m stages.render $(STAGE_ARGS)

@@ -7,7 +7,10 @@ Frames: the SPlisHSPlasH dam break (6,859 particles, r = 25 mm: large on screen)
 break of 49,140 particles (r = 7.4 mm: small on screen), each framed whole by the camera.
 
     .venv/bin/python benchmarks/bench_render.py [--sizes 256 512 1024 2048] [--plot docs/render_costs.png]
-                                                [--demo] [--exact]
+                                                [--splat sphere|ellipsoid] [--demo] [--exact]
+
+With ``--splat ellipsoid`` the refiner's input is made from the particles' anisotropic ellipsoids
+(the shipped weights since 2026-11-25): the per-frame anisotropy joins the inputs.
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ from pipeline.particles import read_particles  # noqa: E402
 from pipeline.render import normal_source, shade_frame  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402
 from pipeline.shading import Shader  # noqa: E402
+from pipeline.surface import particle_ellipsoids  # noqa: E402
 from pipeline.timing import Timings  # noqa: E402
 from pipeline.views import screen_space_inputs  # noqa: E402
 from pipeline.writer import BackgroundWriter  # noqa: E402
@@ -81,8 +85,13 @@ def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpac
     t = Timings()
     for _ in range(repeat):
         frame()
-    row = {k: t.mean_ms(k) for k in ("splat", "bilateral", "normals", "refiner", "shading", "exr", "inputs")}
-    inputs = make_input(screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",)))
+    row = {k: t.mean_ms(k) for k in ("anisotropy", "splat", "bilateral", "normals", "refiner", "shading", "exr",
+                                     "inputs")}
+    row["inputs"] += row["anisotropy"]
+    ellipsoids = particle_ellipsoids(x, r, p, launch) if refiner.splat == "ellipsoid" else None
+    channels = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",), ellipsoids=ellipsoids,
+                                   aniso_filters=("bilateral",))
+    inputs = make_input(channels, refiner.auxiliary, refiner.splat)
     row["plain_refiner"] = _best_ms(lambda: predict(generator, inputs), max(1, repeat // 2))
     row["fast_refiner_nocrop"] = _best_ms(lambda: refiner(inputs), max(1, repeat // 2))
     # the render loop as the stage runs it: EXR writing on a background thread
@@ -130,6 +139,8 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--exact", action="store_true", help="the exact (pre-2026-11) filters instead of the fast")
+    parser.add_argument("--splat", choices=("sphere", "ellipsoid"), default="sphere",
+                        help="what the refiner's input is made of (the network's cost is the same)")
     parser.add_argument("--plot", type=Path, help="write a log-log plot of the stage costs here")
     parser.add_argument("--json", type=Path, help="write the figures as JSON here")
     parser.add_argument("--demo", action="store_true", help="also time `make demo` in a fresh cache")
@@ -137,17 +148,18 @@ def main() -> None:
     wp.config.quiet = True
     p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
     generator, _ = load_generator(ROOT / "pipeline" / "weights" / "refiner.pt")
-    refiner = Refiner(generator)
+    refiner = Refiner(generator, splat=args.splat)
     ss, launch, shader = ScreenSpace("cpu"), Launcher("cpu"), Shader("cpu")
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     x_pbf, r_pbf = _pbf_frame(50_000)
     frames = {"SPlisHSPlasH dam break, 6,859 particles (large)": (read_particles(bgeo).positions, 0.025),
               f"PBF dam break, {len(x_pbf):,} particles (small)": (x_pbf, r_pbf)}
     results: dict[str, dict[str, dict[str, float]]] = {}
-    print(f"filters: {p.filter_mode}; {torch.get_num_threads()} torch threads; ms per frame (medians)")
-    head = (f"{'size':>5s} {'r_px':>5s} {'splat':>6s} {'bilat':>6s} {'normal':>6s} {'inputs':>7s} {'shade':>6s} "
-            f"{'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'nocrop':>7s} {'plain':>7s} "
-            f"{'speed-up':>8s}")
+    print(f"filters: {p.filter_mode}; refiner input: {args.splat} splat; {torch.get_num_threads()} torch threads; "
+          "ms per frame (medians)")
+    head = (f"{'size':>5s} {'r_px':>5s} {'aniso':>6s} {'splat':>6s} {'bilat':>6s} {'normal':>6s} {'inputs':>7s} "
+            f"{'shade':>6s} {'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'nocrop':>7s} "
+            f"{'plain':>7s} {'speed-up':>8s}")
     with tempfile.TemporaryDirectory() as tmp:
         for name, (x, r) in frames.items():
             print(f"\n{name}\n{head}")
@@ -156,14 +168,15 @@ def main() -> None:
                 repeat = args.repeat if size <= 1024 else max(2, args.repeat // 2)
                 row = measure(x, r, size, p, ss, launch, shader, refiner, generator, repeat, Path(tmp))
                 results[name][str(size)] = row
-                print(f"{size:5d} {row['rp_px']:5.1f} {row['splat']:6.1f} {row['bilateral']:6.1f} "
-                      f"{row['normals']:6.1f} {row['inputs']:7.1f} {row['shading']:6.1f} {row['exr']:6.1f} "
-                      f"{row['inputs'] + row['shading'] + row['exr']:9.1f} {row['pipelined_frame']:9.1f} "
-                      f"{row['refiner']:8.1f} {row['fast_refiner_nocrop']:7.1f} {row['plain_refiner']:7.1f} "
-                      f"{row['plain_refiner'] / row['refiner']:7.2f}x", flush=True)
-    print("\ninputs = splat + filter + normals + copies; refiner = folded, channels-last, cropped to the fluid "
-          "(nocrop: whole image); plain = the training-time module's forward pass; pipelined = a frame of the "
-          "render loop, inputs + refiner + shading with the EXR written on a background thread")
+                print(f"{size:5d} {row['rp_px']:5.1f} {row['anisotropy']:6.1f} {row['splat']:6.1f} "
+                      f"{row['bilateral']:6.1f} {row['normals']:6.1f} {row['inputs']:7.1f} {row['shading']:6.1f} "
+                      f"{row['exr']:6.1f} {row['inputs'] + row['shading'] + row['exr']:9.1f} "
+                      f"{row['pipelined_frame']:9.1f} {row['refiner']:8.1f} {row['fast_refiner_nocrop']:7.1f} "
+                      f"{row['plain_refiner']:7.1f} {row['plain_refiner'] / row['refiner']:7.2f}x", flush=True)
+    print("\ninputs = anisotropy (ellipsoid input only) + splat + filter + normals + copies; refiner = folded, "
+          "channels-last, cropped to the fluid (nocrop: whole image); plain = the training-time module's forward "
+          "pass; pipelined = a frame of the render loop, inputs + refiner + shading with the EXR written on a "
+          "background thread")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     if args.plot:

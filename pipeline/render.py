@@ -71,16 +71,28 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
 
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
                   ss: ScreenSpace, launch: Launcher, refiner: Refiner | None = None, threshold: float = 0.5,
-                  timings: Timings | None = None) -> dict[str, np.ndarray]:
-    """Normals, depth, mask and thickness of a method for one view."""
+                  timings: Timings | None = None, frame_cache: dict | None = None) -> dict[str, np.ndarray]:
+    """Normals, depth, mask and thickness of a method for one view.
+
+    ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
+    between the methods and views of one frame that need them (ellipsoids, refined on ellipsoids,
+    the mesh)."""
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
     if method == "refined" and refiner is None:
         raise ValueError("the refined method needs a generator")
+    cache = frame_cache if frame_cache is not None else {}
+
+    def kernels():
+        if "kernels" not in cache:
+            with t("anisotropy"):
+                cache["kernels"] = anisotropic_kernels(np.asarray(positions, np.float32), radius, filters, launch,
+                                                       ss.device)
+        return cache["kernels"]
+
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
-        with t("anisotropy"):
-            ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device)
+        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels())
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         with t("inputs"):
             ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
@@ -101,10 +113,11 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method == "mesh":
         with t("mesh"):
             if filters.target == "raytrace":
-                kernels = anisotropic_kernels(np.asarray(positions, np.float32), radius, filters, launch, ss.device)
-                tc = raytraced_target_channels(kernels, radius, filters, camera, ss, launch, ss.device)
+                tc = raytraced_target_channels(kernels(), radius, filters, camera, ss, launch, ss.device)
             else:
-                tc = target_channels(reconstruct(positions, radius, filters, launch), camera, launch)
+                if "mesh" not in cache:
+                    cache["mesh"] = reconstruct(positions, radius, filters, launch, ss.device, kernels())
+                tc = target_channels(cache["mesh"], camera, launch)
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
         return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": thickness}
     return method_maps(method, ch)

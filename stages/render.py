@@ -130,11 +130,11 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
                 with timings("background"):
                     bg, bg_depth = background.render(cam)
                     bg = shader.fill_sky(bg, bg_depth, cam, p)
-                shaded = {}
+                shaded, frame_cache = {}, {}
                 for method in [p.method] + [m for m in COMPARED if p.comparison and m != p.method]:
                     t = timings if method == p.method else Timings()
                     src = normal_source(method, x, info.particle_radius, cam, run.config.dataset, ss, launch,
-                                        refiner, p.normal_threshold, t)
+                                        refiner, p.normal_threshold, t, frame_cache)
                     shaded[method] = shade_frame(src, bg, bg_depth, cam, p, shader, t)
                 if not shaded[p.method].mask.any():
                     no_fluid.append(frame)

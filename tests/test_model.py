@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -140,3 +141,21 @@ def test_resume_after_kill_equals_straight_run(tmp_path):
     for k in a:
         assert torch.equal(a[k], b[k]), k
     assert not list(train_dir.rglob("*.tmp-*"))
+
+
+def test_ship_writes_loadable_weights_and_their_card(tmp_path):
+    from pipeline.model.inference import load_refiner
+    from stages import ship
+    from stages.common import stage_main
+
+    config = _tiny_train_config(tmp_path, "ship")
+    out = tmp_path / "weights"
+    assert stage_main("ship", ship.main, ["--config", config, "--out", str(out)]) == 0
+    refiner = load_refiner(out / "refiner.pt")
+    assert refiner.splat == "ellipsoid" and refiner.auxiliary
+    card = json.loads((out / "refiner.json").read_text())
+    assert card["data"]["input_splat"] == "ellipsoid" and card["epochs_run"] == 2
+    assert card["held_out"]["refined"]["mean_deg"] > 0 and len(card["history"]) == 2
+    assert (out / "loss_curve.png").stat().st_size > 0
+    assert set(torch.load(out / "refiner.pt", weights_only=True)) == {"generator", "generator_args", "config", "epoch",
+                                                                      "metrics"}

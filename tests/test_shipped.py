@@ -12,12 +12,12 @@ import yaml
 from pipeline.camera import camera_for_frame
 from pipeline.config import load
 from pipeline.metrics import angular_errors, normal_mask
-from pipeline.model.data import make_input
+from pipeline.model.data import input_channels, make_input
 from pipeline.model.trainer import load_generator, predict
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.sim.pbf import PBFSolver
-from pipeline.surface import reconstruct
+from pipeline.surface import particle_ellipsoids, reconstruct
 from pipeline.views import screen_space_inputs, target_channels
 from stages import demo
 from stages.common import stage_main
@@ -50,14 +50,16 @@ def test_shipped_weights_beat_the_bilateral_input_on_an_unseen_scene():
     r = loaded.config.simulate.particle_radius
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
     cam = camera_for_frame(scene.cameras, "orbit", 20, 50, p.width, p.height)
-    ch = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",))
+    ch = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",),
+                             ellipsoids=particle_ellipsoids(x, r, p, launch), aniso_filters=("bilateral",))
     ch.update(target_channels(reconstruct(x, r, p, launch), cam, launch))
     ss.close()
     launch.close()
-    generator, _ = load_generator(SHIPPED)
-    refined = predict(generator, make_input(ch))
+    generator, meta = load_generator(SHIPPED)
+    splat = meta["config"].get("input_splat", "sphere")
+    refined = predict(generator, make_input(ch, True, splat))
     target = np.stack([ch[f"target.N.{a}"] for a in "XYZ"], -1)
-    given = np.stack([ch[f"bilateral.N.{a}"] for a in "XYZ"], -1)
+    given = np.stack([ch[name] for name in input_channels(splat).normal], -1)
     t_mask = normal_mask(target)
     e_refined = angular_errors(refined, target, normal_mask(refined) & t_mask)
     e_input = angular_errors(given, target, normal_mask(given) & t_mask)
