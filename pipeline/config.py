@@ -276,9 +276,6 @@ class DatasetConfig:
     'raytrace' (each pixel's ray marched through the density to the iso-level, no grid)."""
     raytrace_step_radii: float = _f(0.5, gt=0.0)
     """'raytrace': march step along the ray, in particle radii (a crossing is then bisected)."""
-    raytrace_start_margin_radii: float = _f(2.0, ge=0.0)
-    """'raytrace': a ray's march starts this many particle radii before the particle ellipsoids'
-    splat (where the density is still below the iso-level; else at the first kernel support)."""
     raytrace_bisections: int = _f(10, ge=0)
     """'raytrace': bisection steps that refine each crossing (each halves the depth error)."""
     keep_meshes: bool = False

@@ -49,21 +49,15 @@ def _camera(size: int = 96) -> Camera:
     return Camera(look_at((0, 0, 0), (0, 0, -1)), 10.0, size, size)
 
 
-@pytest.mark.parametrize("margin", [2.0, 0.0])
-def test_one_kernel_is_the_closed_form_sphere(runners, margin):
+def test_one_kernel_is_the_closed_form_sphere(runners):
     """phi = A / H^3 (1 - |x - c|^2 / H^2)^3 crosses the iso-level on a sphere of radius
-    H sqrt(1 - (iso H^3 / A)^(1/3)); depth, mask and normal against the ray-sphere hit. With no
-    start margin the march would start inside that sphere (the particle ellipsoid, H / 5, is
-    smaller), sees it and backs off to the kernel support."""
-    import dataclasses
-
+    H sqrt(1 - (iso H^3 / A)^(1/3)); depth, mask, thickness and normal against the ray-sphere hit."""
     ss, launch = runners
-    p = dataclasses.replace(P, raytrace_start_margin_radii=margin)
     support = 2.5 * R
     centre = np.array([0.002, -0.001, -0.3])
     cam = _camera()
-    n, depth, mask, thick = raytrace_maps(_kernels(centre[None], support), R, p, cam, ss, launch,
-                                          with_thickness=margin > 0)
+    n, depth, mask, thick = raytrace_maps(_kernels(centre[None], support), R, P, cam, ss, launch,
+                                          with_thickness=True)
     amplitude = (2 * R) ** 3 * K.POLY6_NORM
     radius = support * np.sqrt(1 - (P.iso_level * support**3 / amplitude) ** (1 / 3))
     assert 0.8 * R < radius < R
@@ -81,9 +75,8 @@ def test_one_kernel_is_the_closed_form_sphere(runners, margin):
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
     cos = (n[inner] * normal[inner]).sum(-1)
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 0.05
-    if margin > 0:
-        chord = 2 * np.sqrt(np.where(hit, disc, 0)) / a * np.linalg.norm(rays, axis=-1)
-        np.testing.assert_allclose(thick[inner], chord[inner], atol=5e-6)
+    chord = 2 * np.sqrt(np.where(hit, disc, 0)) / a * np.linalg.norm(rays, axis=-1)
+    np.testing.assert_allclose(thick[inner], chord[inner], atol=5e-6)
 
 
 def test_two_kernels_first_crossing_and_gradient_normal(runners):
