@@ -46,11 +46,12 @@ def compute_anisotropy(
     wrr = wp.mat33(0.0)
     count = int(0)
     j = int(0)
+    support2 = support * support
     while wp.hash_grid_query_next(q, j):
         r = particle_x[j] - xi
-        d = wp.length(r)
-        if d < support:
-            t = d / support
+        d2 = wp.dot(r, r)
+        if d2 < support2:
+            t = wp.sqrt(d2) / support
             w = 1.0 - t * t * t
             wsum += w
             wr += r * w
