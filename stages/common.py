@@ -89,6 +89,14 @@ def stage_main(stage: str, body: Callable[[list[str] | None], None], argv: list[
             raise
         print(f"{stage}: error: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:
+        # disk full, read-only file system, permissions: name the stage, the path and the cause
+        if os.environ.get("DEEP_SSFR_DEBUG"):
+            raise
+        where = f" ({exc.filename})" if exc.filename else ""
+        cause = exc.strerror or str(exc)
+        print(f"{stage}: error: {cause}{where}; finished outputs are kept and a re-run resumes", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"{stage}: interrupted; finished frames are kept and a re-run resumes", file=sys.stderr)
         return 130

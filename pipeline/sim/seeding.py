@@ -52,12 +52,35 @@ def _lattice_in_box(lo, hi, spacing: float) -> np.ndarray:
     return np.stack([c.ravel() for c in g], axis=1)
 
 
+# More initial particles than this is taken for a unit mistake (a radius in mm given as m, 1e-9):
+# 20 million particles already need several GB and hours a frame here.
+MAX_INITIAL_PARTICLES = 20_000_000
+
+
+def initial_particle_estimate(scene: SceneConfig, radius: float) -> float:
+    """Upper estimate of the particles ``seed_fluid`` would place (before building any lattice)."""
+    total = 0.0
+    for shape in scene.fluid:
+        if shape.shape == "box":
+            extent = np.maximum(np.asarray(shape.hi, float) - np.asarray(shape.lo, float), 0.0)
+            total += float(np.prod(extent / (2.0 * radius) + 1.0))
+        else:
+            total += float((shape.radius / radius + 1.0) ** 3)
+    return total
+
+
 def seed_fluid(scene: SceneConfig, radius: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Particles filling the scene's fluid shapes on a lattice of spacing 2r.
 
     A tiny seeded jitter (1% of r) breaks the lattice symmetry; shapes are clipped to the
     container and overlapping shapes do not double-fill.
     """
+    estimate = initial_particle_estimate(scene, radius)
+    if estimate > MAX_INITIAL_PARTICLES:
+        volume_share = (estimate / MAX_INITIAL_PARTICLES) ** (1 / 3)
+        raise ValueError(f"simulate.particle_radius {radius:g} would fill the fluid of scene {scene.name!r} with about "
+                         f"{estimate:.2g} particles (the limit is {MAX_INITIAL_PARTICLES:,}); use a radius of at "
+                         f"least {radius * volume_share:.3g} in the scene's units")
     spacing = 2.0 * radius
     dlo = np.asarray(scene.domain_lo, float) + radius
     dhi = np.asarray(scene.domain_hi, float) - radius

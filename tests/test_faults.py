@@ -1,0 +1,86 @@
+"""Faults and hostile inputs end in one clear line, and nothing half-written is taken as done."""
+
+from __future__ import annotations
+
+import errno
+
+import numpy as np
+import pytest
+import yaml
+
+from stages import render, simulate
+from stages.common import stage_main
+from tests.conftest import ROOT
+
+
+def _enospc(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def _one_line(err: str) -> str:
+    """The error line of a stage's stderr (progress bars aside): exactly one, and no traceback."""
+    lines = [line for line in err.replace("\r", "\n").splitlines() if "error:" in line or "Traceback" in line]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_disk_full_while_simulating_is_one_line_and_resumes(tiny_dam, capsys, monkeypatch):
+    """The frame writer fails with ENOSPC half way: one line naming the stage, the file and the
+    cause; no manifest (the entry is not complete); a later run resumes and completes."""
+    real = np.savez
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            _enospc()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(np, "savez", flaky)
+    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("simulate: error: No space left on device") and "frame_0004.npz" in line
+    (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
+    assert not (entry / "manifest.json").exists() and not list(entry.glob(".*tmp*"))
+    monkeypatch.setattr(np, "savez", real)
+    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    assert (entry / "manifest.json").exists() and len(list(entry.glob("frame_*.npz"))) == 6
+
+
+def test_disk_full_while_writing_an_exr_is_one_line(tiny_dam, capsys, monkeypatch):
+    """The EXR is written on the background writer thread; its failure still reaches the stage
+    boundary as one line naming the EXR, and the render is not marked complete."""
+    import OpenEXR
+
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["render"] = {"width": 48, "height": 48, "method": "nrf", "comparison": False}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    monkeypatch.setattr(OpenEXR.File, "write", _enospc)
+    assert stage_main("render", render.main, ["--config", str(tiny_dam)]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("render: error: No space left on device") and ".exr" in line
+    (entry,) = (tiny_dam.parent / "data" / "render").iterdir()
+    assert not (entry / "manifest.json").exists()
+
+
+def test_a_duplicated_yaml_key_is_rejected(tmp_path, capsys):
+    path = tmp_path / "dup.yaml"
+    path.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nsimulate:\n  frames: 4\n  frames: 8\n")
+    assert stage_main("simulate", simulate.main, ["--config", str(path)]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "dup.yaml" in line and "duplicate key 'frames'" in line and "line 3" in line
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("fps", ".inf", "simulate.fps: must be a finite number"),
+    ("particle_radius", ".nan", "simulate.particle_radius: must be a finite number"),
+    ("particle_radius", "1.0e-9", "simulate.particle_radius 1e-09 would fill the fluid of scene"),
+])
+def test_non_finite_and_absurd_numbers_are_named(tiny_dam, capsys, key, value, words):
+    text = tiny_dam.read_text().replace("simulate:\n", f"simulate:\n  {key}: {value}\n", 1)
+    if key == "particle_radius":
+        text = text.replace("  particle_radius: 0.0125\n", "")
+    tiny_dam.write_text(text)
+    code = stage_main("simulate", simulate.main, ["--config", str(tiny_dam)])
+    line = _one_line(capsys.readouterr().err)
+    assert code in (1, 2) and words in line, line
