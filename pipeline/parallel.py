@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -29,6 +30,17 @@ CHUNKS_PER_THREAD = 1
 
 # Recorded launches kept by a reusing Launcher before it starts afresh.
 MAX_RECORDED = 512
+
+# Serialises Warp initialisation and module loading across threads.
+LOAD_LOCK = threading.Lock()
+
+
+def init_warp(modules: tuple[Any, ...] = (), device: str = "cpu") -> None:
+    """Initialise Warp and load kernel modules on the calling thread, before worker threads start."""
+    with LOAD_LOCK:
+        wp.init()
+        for module in modules:
+            wp.load_module(module, device=device)
 
 
 def _key(value: Any) -> Any:
@@ -60,9 +72,11 @@ class Launcher:
         self._recorded: dict | None = {} if reuse else None
 
     def _load(self, kernel: Any) -> None:
-        # compile once here, not concurrently from several threads
+        # compile once here, not concurrently from several threads or Launchers (Warp's module
+        # loading is not thread-safe: two dataset workers loading at once failed about 1 run in 30)
         if kernel.module not in self._loaded:
-            wp.load_module(kernel.module, device=self.device)
+            with LOAD_LOCK:
+                wp.load_module(kernel.module, device=self.device)
             self._loaded.add(kernel.module)
 
     def _launch(self, kernel: Any, slot: int, start: int, count: int, inputs: list[Any]) -> None:

@@ -22,9 +22,11 @@ from pipeline.config import SceneConfig, to_dict
 from pipeline.device import warp_device
 from pipeline.exr import read_exr, write_exr
 from pipeline.frames import frame_name, load_frame, read_sequence_info
-from pipeline.parallel import Launcher
+from pipeline.parallel import Launcher, init_warp
 from pipeline.screen import ScreenSpace
+from pipeline.screen import kernels as screen_kernels
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
+from pipeline.surface import kernels as surface_kernels
 from pipeline.timing import Timings
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 from stages import simulate
@@ -81,6 +83,8 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     device = warp_device(run.device)
     workers = p.workers or os.cpu_count() or 1
     workers = 1 if device != "cpu" else workers
+    # Warp initialised and the kernels loaded here, not by the workers at once
+    init_warp((screen_kernels, surface_kernels), device)
     local = _Worker(device, 1 if workers > 1 else 0)
     timings = Timings()
     lock = threading.Lock()

@@ -84,3 +84,36 @@ def test_non_finite_and_absurd_numbers_are_named(tiny_dam, capsys, key, value, w
     code = stage_main("simulate", simulate.main, ["--config", str(tiny_dam)])
     line = _one_line(capsys.readouterr().err)
     assert code in (1, 2) and words in line, line
+
+
+def test_dataset_workers_never_load_warp_modules_at_once(tiny_dam, monkeypatch):
+    """Two frame workers used to initialise Warp together (about 1 run in 30 failed inside Warp):
+    Warp is initialised before they start and module loads are serialised."""
+    import threading
+
+    import warp as wp
+
+    from stages import dataset
+
+    real = wp.load_module
+    state = {"inside": 0, "most": 0, "calls": 0}
+    lock = threading.Lock()
+
+    def watched(*args, **kwargs):
+        with lock:
+            state["inside"] += 1
+            state["calls"] += 1
+            state["most"] = max(state["most"], state["inside"])
+        try:
+            threading.Event().wait(0.01)  # widen the window a race would need
+            return real(*args, **kwargs)
+        finally:
+            with lock:
+                state["inside"] -= 1
+
+    monkeypatch.setattr(wp, "load_module", watched)
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["dataset"] = {"width": 32, "height": 32, "frame_stride": 1, "workers": 2}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 0
+    assert state["calls"] > 2 and state["most"] == 1, state
