@@ -79,12 +79,27 @@ def write_json_atomic(path: Path, payload: Any) -> None:
         tmp.write_text(json.dumps(payload, indent=2, sort_keys=True, default=str))
 
 
+STAGES = ("simulate", "dataset", "train", "render", "evaluate")
+
+
+def redo_hint(path: str | Path) -> str:
+    """What to run to rebuild the cache entry holding ``path``: a stage writes
+    ``<data>/<stage>/<scene>-<key>/...``, so the command is ``make <stage> FORCE=1 SCENE=<scene>``."""
+    parts = Path(path).parts
+    for i, part in enumerate(parts[:-1]):
+        if part in STAGES and i + 1 < len(parts):
+            name = parts[i + 1].rsplit("-", 1)[0]
+            scene = f" SCENE={name}" if part in ("simulate", "dataset", "render") else ""
+            return f"delete it or run `make {part} FORCE=1{scene}` (with the same CONFIG) to rebuild it"
+    return "delete it and run the stage that wrote it again"
+
+
 def read_json(path: Path) -> Any:
     """Read a JSON cache file, naming the file when it is corrupt."""
     try:
         return json.loads(Path(path).read_text())
     except json.JSONDecodeError as exc:
-        raise CacheError(f"corrupt cache file {path}: {exc}; delete it or re-run with FORCE=1") from None
+        raise CacheError(f"corrupt cache file {path}: {exc}; {redo_hint(path)}") from None
 
 
 @dataclass

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from pipeline.cache import CacheError, atomic_path
+from pipeline.cache import CacheError, atomic_path, redo_hint
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray], half: tuple[str, ...] = ()) -> None:
@@ -46,7 +46,7 @@ def read_exr(path: str | Path, names: list[str] | None = None) -> dict[str, np.n
     except FileNotFoundError:
         raise CacheError(f"missing file {path}") from None
     except Exception as exc:
-        raise CacheError(f"corrupt EXR file {path} ({exc}); delete it or re-run with FORCE=1") from None
+        raise CacheError(f"corrupt EXR file {path} ({exc}); {redo_hint(path)}") from None
 
 
 def stack(channels: dict[str, np.ndarray], prefix: str, suffixes=("X", "Y", "Z")) -> np.ndarray:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.cache import CacheError, atomic_path, read_json, write_json_atomic
+from pipeline.cache import CacheError, atomic_path, read_json, redo_hint, write_json_atomic
 
 SEQUENCE_FILE = "sequence.json"
 
@@ -50,7 +50,7 @@ def load_frame(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     except FileNotFoundError:
         raise CacheError(f"missing cache file {path}; re-run the simulate stage") from None
     except (zipfile.BadZipFile, ValueError, KeyError, OSError, EOFError) as exc:
-        raise CacheError(f"corrupt cache file {path} ({exc}); delete it or re-run with FORCE=1") from None
+        raise CacheError(f"corrupt cache file {path} ({exc}); {redo_hint(path)}") from None
     if x.ndim != 2 or x.shape[1] != 3:
         raise CacheError(f"corrupt cache file {path}: positions have shape {x.shape}")
     return x, v

@@ -91,7 +91,8 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
         try:
             state = torch.load(last, map_location=run.device, weights_only=True)
         except Exception as exc:
-            raise StageError(f"corrupt checkpoint {last} ({exc}); delete it or re-run with FORCE=1") from None
+            raise StageError(f"corrupt checkpoint {last} ({exc}); delete it or run `make train FORCE=1` (with the "
+                             "same CONFIG) to train again") from None
         refiner.load_state(state)
         start_epoch, best, history = int(state["epoch"]), float(state["best"]), list(state["history"])
         if start_epoch >= cfg.epochs:

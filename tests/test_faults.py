@@ -117,3 +117,22 @@ def test_dataset_workers_never_load_warp_modules_at_once(tiny_dam, monkeypatch):
     tiny_dam.write_text(yaml.safe_dump(body))
     assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 0
     assert state["calls"] > 2 and state["most"] == 1, state
+
+
+def test_a_corrupt_upstream_file_names_the_command_that_rebuilds_it(tiny_dam, capsys):
+    """A finished simulation with a damaged frame: the dataset stage names the file and the exact
+    command, and running that command does fix it."""
+    from stages import dataset
+
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["dataset"] = {"width": 32, "height": 32, "frame_stride": 1}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
+    (entry / "frame_0003.npz").write_bytes(b"garbage")
+    capsys.readouterr()
+    assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert "frame_0003.npz" in line and "`make simulate FORCE=1 SCENE=tiny_dam`" in line, line
+    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam), "--scene", "tiny_dam", "--force"]) == 0
+    assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 0
