@@ -136,3 +136,29 @@ def test_a_corrupt_upstream_file_names_the_command_that_rebuilds_it(tiny_dam, ca
     assert "frame_0003.npz" in line and "`make simulate FORCE=1 SCENE=tiny_dam`" in line, line
     assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam), "--scene", "tiny_dam", "--force"]) == 0
     assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 0
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_vtk_5_1_files_as_meshio_writes_them(tmp_path, binary):
+    """VTK 5.1 (CELLS as OFFSETS and CONNECTIVITY arrays) used to fail with raw bytes in the message."""
+    meshio = pytest.importorskip("meshio")
+    from pipeline.particles import read_particles
+
+    rng = np.random.default_rng(0)
+    points, velocity = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    mesh = meshio.Mesh(points, [("vertex", np.arange(50)[:, None])], point_data={"velocity": velocity})
+    path = tmp_path / "frame.vtk"
+    meshio.vtk.write(str(path), mesh, fmt_version="5.1", binary=binary)
+    assert "Version 5.1" in path.read_bytes()[:40].decode()
+    frame = read_particles(path)
+    np.testing.assert_allclose(frame.positions, points, atol=1e-6)
+    np.testing.assert_allclose(frame.velocities, velocity, atol=1e-6)
+
+
+def test_an_empty_particle_file_is_named(tmp_path):
+    from pipeline.particles import ParticleFormatError, read_particles
+
+    path = tmp_path / "frame_1.xyz"
+    path.write_bytes(b"")
+    with pytest.raises(ParticleFormatError, match=r"frame_1\.xyz: the file holds no particles"):
+        read_particles(path)

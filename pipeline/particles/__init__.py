@@ -44,6 +44,8 @@ def read_particles(path: str | Path) -> ParticleFrame:
         raise ParticleFormatError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
     if frame.positions.ndim != 2 or frame.positions.shape[1] != 3:
         raise ParticleFormatError(f"{path}: positions have shape {frame.positions.shape}, expected N x 3")
+    if len(frame.positions) == 0:
+        raise ParticleFormatError(f"{path}: the file holds no particles")
     if not np.isfinite(frame.positions).all():
         raise ParticleFormatError(f"{path}: positions contain NaN or infinity")
     return frame

@@ -1,4 +1,5 @@
-"""Legacy VTK files (``# vtk DataFile``), ASCII or BINARY (big-endian), as SPlisHSPlasH writes.
+"""Legacy VTK files (``# vtk DataFile``, versions 3.0 to 5.1), ASCII or BINARY (big-endian), as
+SPlisHSPlasH (4.2) and meshio (5.1, whose CELLS come as OFFSETS and CONNECTIVITY arrays) write them.
 
 Reads POINTS and a 3-component point array named ``velocity``/``v`` (SCALARS, VECTORS or FIELD);
 skips CELLS, CELL_TYPES and other arrays by their declared sizes. Writes an UNSTRUCTURED_GRID of
@@ -57,8 +58,15 @@ class _Reader:
 def read(path: Path) -> ParticleFrame:
     """Read positions and velocities."""
     r = _Reader(path, Path(path).read_bytes())
-    if not (r.line() or "").startswith("# vtk DataFile"):
+    header = r.line() or ""
+    if not header.startswith("# vtk DataFile"):
         raise ParticleFormatError(f"{path}: not a legacy VTK file")
+    try:
+        version = float(header.split("Version")[-1])
+    except ValueError:
+        version = 3.0
+    if version >= 6:
+        raise ParticleFormatError(f"{path}: legacy VTK version {version:g} is not supported (3.0 to 5.1)")
     r.line()  # title
     r.binary = (r.line() or "").upper() == "BINARY"
     positions, velocities, n_points = None, None, 0
@@ -70,6 +78,13 @@ def read(path: Path) -> ParticleFrame:
         if key == "POINTS":
             n_points = int(args[0])
             positions = r.values(3 * n_points, args[1]).reshape(-1, 3).astype(np.float32)
+        elif key in ("CELLS", "POLYGONS", "VERTICES", "LINES") and version >= 5:
+            # 5.x: "CELLS <offsets> <connectivity>", then OFFSETS and CONNECTIVITY arrays
+            for expected, count in (("OFFSETS", int(args[0])), ("CONNECTIVITY", int(args[1]))):
+                head = (r.line() or "").split()
+                if len(head) != 2 or head[0].upper() != expected:
+                    raise ParticleFormatError(f"{path}: VTK {version:g} {key} lacks its {expected} array")
+                r.values(count, head[1])
         elif key in ("CELLS", "POLYGONS", "VERTICES", "LINES"):
             r.values(int(args[1]), "int")
         elif key == "CELL_TYPES":
