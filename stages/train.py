@@ -106,7 +106,11 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     splat = cfg.input_splat
     frames = [load_frame(p, aux, splat) for p in tqdm(train_paths, desc="load", unit="frame", leave=False)]
     val_frames: list[Frame] = [load_frame(p, aux, splat) for p in _spread(val_paths, cfg.val_frames)] or frames[:2]
-    crop = min(cfg.crop, *frames[0].inputs.shape[1:])
+    crop = cfg.crop
+    height, width = frames[0].inputs.shape[1:]
+    if crop > min(height, width):
+        raise StageError(f"train.crop is {crop} px but the dataset's images are {width}x{height}; set train.crop "
+                         f"to at most {min(height, width)} or render a larger dataset (dataset.width/height)")
     steps = max(1, math.ceil(len(frames) * cfg.crops_per_frame / cfg.batch_size))
     g_params = sum(p.numel() for p in refiner.generator.parameters())
     log.info("train: generator %.2f M parameters, %d steps/epoch of %d crops of %d px on %s",

@@ -159,3 +159,16 @@ def test_ship_writes_loadable_weights_and_their_card(tmp_path):
     assert (out / "loss_curve.png").stat().st_size > 0
     assert set(torch.load(out / "refiner.pt", weights_only=True)) == {"generator", "generator_args", "config", "epoch",
                                                                       "metrics"}
+
+
+def test_a_crop_larger_than_the_images_is_an_error(tmp_path, capsys):
+    from stages import train
+    from stages.common import stage_main
+
+    config = _tiny_train_config(tmp_path, "crop")
+    body = yaml.safe_load(open(config))
+    body["train"]["crop"] = 96  # the tiny dataset is 64 x 64
+    open(config, "w").write(yaml.safe_dump(body))
+    assert stage_main("train", train.main, ["--config", config]) == 1
+    err = capsys.readouterr().err
+    assert "train.crop is 96 px but the dataset's images are 64x64" in err
