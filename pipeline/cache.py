@@ -9,6 +9,7 @@ it resume, and the manifest (written last) marks the entry complete.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import importlib.util
 import json
@@ -80,6 +81,19 @@ def write_json_atomic(path: Path, payload: Any) -> None:
 
 
 STAGES = ("simulate", "dataset", "train", "render", "evaluate")
+
+
+def write_failure(folder: Path, fallback: str) -> tuple[int, str]:
+    """(errno, reason) for a writer that failed without saying why (OpenEXR, ffmpeg): a full disk,
+    a folder that cannot be written, else ``fallback``."""
+    try:
+        if shutil.disk_usage(folder).free < 2**20:
+            return errno.ENOSPC, "No space left on device"
+    except OSError:
+        pass
+    if not os.access(folder, os.W_OK):
+        return errno.EROFS, "the folder is not writable (read-only file system or permissions)"
+    return errno.EIO, fallback
 
 
 def redo_hint(path: str | Path) -> str:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
-from pipeline.cache import CacheError, atomic_path, redo_hint
+from pipeline.cache import CacheError, atomic_path, redo_hint, write_failure
 
 
 def write_exr(path: str | Path, channels: dict[str, np.ndarray], half: tuple[str, ...] = ()) -> None:
@@ -27,7 +27,12 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], half: tuple[str
             for name, a in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(Path(path)) as tmp:
-        OpenEXR.File(header, data).write(str(tmp))
+        try:
+            OpenEXR.File(header, data).write(str(tmp))
+        except OSError:
+            raise
+        except Exception as exc:  # OpenEXR raises a bare error whose text names the temporary file
+            raise OSError(*write_failure(Path(tmp).parent, f"cannot write the EXR ({exc})"), str(path)) from None
 
 
 def read_exr(path: str | Path, names: list[str] | None = None) -> dict[str, np.ndarray]:

@@ -6,15 +6,18 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.cache import atomic_path
+from pipeline.cache import atomic_path, write_failure
 
 
 def write_png(path: Path, image: np.ndarray) -> None:
-    """Write an 8-bit RGB(A) image atomically."""
-    import imageio.v3 as iio
+    """Write an 8-bit RGB(A) image atomically.
 
-    with atomic_path(Path(path)) as tmp:
-        iio.imwrite(tmp, image, extension=".png")
+    Pillow directly rather than through imageio, whose plugin object, when a write fails (disk
+    full), raises again from its destructor and prints a stray traceback."""
+    from PIL import Image
+
+    with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
+        Image.fromarray(np.ascontiguousarray(image)).save(fh, format="PNG")
 
 
 def label(image: np.ndarray, text: str) -> np.ndarray:
@@ -50,14 +53,18 @@ def write_video(path: Path, frames: list[Path], fps: float) -> None:
     with atomic_path(Path(path)) as tmp:
         writer = imageio_ffmpeg.write_frames(str(tmp), (w + pad_w, h + pad_h), fps=fps, codec="libx264",
                                              pix_fmt_out="yuv420p", output_params=["-f", "mp4"],
-                                             macro_block_size=1, ffmpeg_log_level="error")
-        writer.send(None)
-        for f in frames:
-            img = iio.imread(f)[..., :3]
-            if pad_h or pad_w:
-                img = np.pad(img, ((0, pad_h), (0, pad_w), (0, 0)))
-            writer.send(np.ascontiguousarray(img))
-        writer.close()
+                                             macro_block_size=1, ffmpeg_log_level="quiet")
+        try:
+            writer.send(None)
+            for f in frames:
+                img = iio.imread(f)[..., :3]
+                if pad_h or pad_w:
+                    img = np.pad(img, ((0, pad_h), (0, pad_w), (0, 0)))
+                writer.send(np.ascontiguousarray(img))
+            writer.close()
+        except OSError:
+            # imageio-ffmpeg reports the whole ffmpeg command instead of the cause: find it
+            raise OSError(*write_failure(Path(tmp).parent, "ffmpeg could not encode the video"), str(path)) from None
 
 
 def count_video_frames(path: Path) -> int:

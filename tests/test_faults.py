@@ -162,3 +162,57 @@ def test_an_empty_particle_file_is_named(tmp_path):
     path.write_bytes(b"")
     with pytest.raises(ParticleFormatError, match=r"frame_1\.xyz: the file holds no particles"):
         read_particles(path)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MB tmpfs (needs root and mount rights; skipped elsewhere, where the patched-writer tests
+    above stand in)."""
+    import os
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3M", "tmpfs", str(mount)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here")
+    yield mount
+    subprocess.run(["umount", str(mount)], capture_output=True)
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, capsys):
+    """Fill the disk so that space runs out at successively later points of a render (frames,
+    previews, comparison tiles, videos, the contact sheet): every failure is one line naming a
+    file and the cause, never a traceback, nothing is marked complete, and once space is freed
+    the same render completes."""
+    import shutil
+    from pathlib import Path
+
+    body = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    body.update({"scenes": ["dam_break"], "scene_dir": str(ROOT / "configs" / "scenes"),
+                 "data_dir": str(small_disk / "data")})
+    body["simulate"].update({"particle_radius": 0.03, "frames": 6})
+    body["dataset"] = {"holdout_scenes": []}
+    body["render"] = {"width": 128, "height": 128, "method": "nrf", "comparison": True}
+    config = small_disk.parent / "config.yaml"
+    config.write_text(yaml.safe_dump(body))
+    assert stage_main("simulate", simulate.main, ["--config", str(config)]) == 0
+    fill = small_disk / "fill"
+    failures = set()
+    for budget in range(150_000, 1_200_000, 70_000):
+        shutil.rmtree(small_disk / "data" / "render", ignore_errors=True)
+        fill.unlink(missing_ok=True)
+        fill.write_bytes(b"0" * max(shutil.disk_usage(small_disk).free - budget, 0))
+        capsys.readouterr()
+        code = stage_main("render", render.main, ["--config", str(config)])
+        err = capsys.readouterr().err
+        assert "Traceback" not in err
+        if code:
+            line = _one_line(err)
+            assert code == 1 and "No space left on device" in line and str(small_disk) in line, line
+            assert not list((small_disk / "data" / "render").glob("*/manifest.json"))
+            failures.add(Path(line.split("(")[-1].split(")")[0]).suffix)
+    assert {".exr", ".png", ".mp4"} <= failures, failures
+    fill.unlink()
+    assert stage_main("render", render.main, ["--config", str(config)]) == 0
