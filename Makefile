@@ -1,5 +1,5 @@
 # deep-ssfr: `make demo` runs the whole job on the small default; `make test` runs the tests.
-# Stage targets take CONFIG=configs/<file>.yaml SCENE=<name> FORCE=1.
+# Stage targets take CONFIG=configs/<file>.yaml SCENE=<name> FORCE=1 VERIFY=1.
 
 PYTHON ?= python3
 VENV := .venv
@@ -7,8 +7,9 @@ PY := $(VENV)/bin/python
 CONFIG ?= configs/default.yaml
 SCENE ?=
 FORCE ?=
+VERIFY ?=
 FORMAT ?= ply
-STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--force)
+STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--force) $(if $(VERIFY),--verify)
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
 export PYOPENGL_PLATFORM ?= egl
 

@@ -13,6 +13,7 @@ import errno
 import hashlib
 import importlib.util
 import json
+import logging
 import os
 import shutil
 import time
@@ -22,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+log = logging.getLogger("deep_ssfr")
 MANIFEST = "manifest.json"
 _TMP_MARK = ".tmp-"
 
@@ -82,6 +84,18 @@ def write_json_atomic(path: Path, payload: Any) -> None:
 
 STAGES = ("simulate", "dataset", "train", "render", "evaluate")
 
+# Check the recorded hash of every output of a finished entry, not only its size (``--verify``).
+VERIFY_HASHES = False
+
+
+def file_hash(path: Path) -> str:
+    """BLAKE2b (128-bit) of a file's bytes: what ``--verify`` compares with the manifest."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
 
 def write_failure(folder: Path, fallback: str) -> tuple[int, str]:
     """(errno, reason) for a writer that failed without saying why (OpenEXR, ffmpeg): a full disk,
@@ -135,8 +149,28 @@ class CacheEntry:
         return self.dir / filename
 
     def is_complete(self) -> bool:
-        """True when the manifest has been written (the stage finished)."""
-        return (self.dir / MANIFEST).exists()
+        """True when the stage finished (its manifest exists) and every output it recorded is still
+        whole: the recorded size always, the recorded BLAKE2 hash too with ``--verify``. A bad file
+        is deleted with the manifest and named in the log, so the stage's resume redoes just it."""
+        if not (self.dir / MANIFEST).exists():
+            return False
+        checks = self.manifest().get("checks", {})
+        bad = []
+        for name, want in checks.items():
+            path = self.dir / name
+            if not path.exists():
+                bad.append((name, "missing"))
+            elif path.stat().st_size != want["size"]:
+                bad.append((name, f"{path.stat().st_size} bytes, {want['size']} recorded"))
+            elif VERIFY_HASHES and file_hash(path) != want["blake2b"]:
+                bad.append((name, "content differs from the recorded hash"))
+        if not bad:
+            return True
+        for name, why in bad:
+            log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
+            (self.dir / name).unlink(missing_ok=True)
+        (self.dir / MANIFEST).unlink()
+        return False
 
     def manifest(self) -> dict[str, Any]:
         """The manifest of a complete entry."""
@@ -158,6 +192,8 @@ class CacheEntry:
             "key": self.key,
             **self.meta,
             "files": sorted(files),
+            "checks": {f: {"size": (self.dir / f).stat().st_size, "blake2b": file_hash(self.dir / f)}
+                       for f in sorted(files)},
             "timings": timings or {},
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
             **extra,

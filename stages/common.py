@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline import cache
 from pipeline.cache import CacheError
 from pipeline.config import ConfigError, Loaded, load
 from pipeline.device import choose_device
@@ -44,6 +45,8 @@ def parse_args(stage: str, argv: list[str] | None = None, extra: Callable | None
     parser.add_argument("--config", default="configs/default.yaml", help="pipeline YAML")
     parser.add_argument("--scene", default="", help="run only this configured scene")
     parser.add_argument("--force", action="store_true", help="recompute even if cached")
+    parser.add_argument("--verify", action="store_true",
+                        help="check cached outputs against their recorded hashes, not only their sizes")
     if extra:
         extra(parser)
     return parser.parse_args(argv)
@@ -52,6 +55,7 @@ def parse_args(stage: str, argv: list[str] | None = None, extra: Callable | None
 def make_run(args: argparse.Namespace, overrides: dict | None = None) -> Run:
     """Load config and choose the device."""
     loaded = load(args.config, overrides=overrides, only_scene=args.scene or None)
+    cache.VERIFY_HASHES = bool(getattr(args, "verify", False))
     return Run(loaded, choose_device(loaded.config.device), bool(args.force))
 
 

@@ -216,3 +216,34 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
     assert {".exr", ".png", ".mp4"} <= failures, failures
     fill.unlink()
     assert stage_main("render", render.main, ["--config", str(config)]) == 0
+
+
+def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, caplog):
+    """Sizes are checked on every run, hashes with --verify; only the damaged frame is redone."""
+    from pipeline.exr import read_exr
+
+    caplog.set_level("WARNING")
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["render"] = {"width": 48, "height": 48, "method": "nrf", "comparison": False}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    args = ["--config", str(tiny_dam)]
+    assert stage_main("render", render.main, args) == 0
+    (entry,) = (tiny_dam.parent / "data" / "render").iterdir()
+    frames = entry / "frames"
+    whole = (frames / "frame_0003.exr").read_bytes()
+    kept = (frames / "frame_0001.exr").stat().st_mtime_ns
+    (frames / "frame_0003.exr").write_bytes(whole[: len(whole) // 2])  # truncated
+    assert stage_main("render", render.main, args) == 0
+    assert "frame_0003.exr is damaged" in caplog.text
+    assert (frames / "frame_0003.exr").read_bytes() == whole and read_exr(frames / "frame_0003.exr")["A"].any()
+    assert (frames / "frame_0001.exr").stat().st_mtime_ns == kept
+
+    flipped = bytearray(whole)
+    flipped[-10] ^= 0xFF  # same size, other content
+    (frames / "frame_0003.exr").write_bytes(bytes(flipped))
+    caplog.clear()
+    assert stage_main("render", render.main, args) == 0
+    assert "damaged" not in caplog.text and (frames / "frame_0003.exr").read_bytes() == bytes(flipped)
+    assert stage_main("render", render.main, [*args, "--verify"]) == 0
+    assert "content differs from the recorded hash" in caplog.text
+    assert (frames / "frame_0003.exr").read_bytes() == whole
