@@ -248,3 +248,28 @@ def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, ca
     assert stage_main("render", render.main, [*args, "--verify"]) == 0
     assert "content differs from the recorded hash" in caplog.text
     assert (frames / "frame_0003.exr").read_bytes() == whole
+
+
+def test_disk_full_while_exporting_is_one_line(tiny_dam, capsys, monkeypatch):
+    from pathlib import Path
+
+    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    monkeypatch.setattr(Path, "write_bytes", _enospc)
+    capsys.readouterr()
+    assert stage_main("export", simulate.export_main, ["--config", str(tiny_dam), "--format", "ply"]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("export: error: No space left on device") and "frame_0001.ply" in line, line
+
+
+def test_disk_full_while_saving_a_checkpoint_is_one_line(tmp_path, capsys, monkeypatch):
+    import torch
+
+    from stages import train
+    from tests.test_model import _tiny_train_config
+
+    config = _tiny_train_config(tmp_path, "full")
+    monkeypatch.setattr(torch, "save", _enospc)
+    assert stage_main("train", train.main, ["--config", config]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("train: error: No space left on device") and "last.pt" in line, line
+    assert not list((tmp_path / "full" / "data" / "train").glob("*/manifest.json"))
