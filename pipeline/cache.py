@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import shutil
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -58,6 +59,23 @@ def make_key(payload: dict[str, Any]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
+JOURNAL = "journal.jsonl"
+_OPEN_ENTRIES: dict[Path, threading.Lock] = {}  # entries between begin() and finish(), by folder
+
+
+def _journal(target: Path) -> None:
+    """Append a finished file's size and hash to the journal of the open entry that holds it, so a
+    resumed run can check the files of an unfinished entry as the manifest checks a finished one."""
+    target = Path(target).resolve()
+    for folder, lock in list(_OPEN_ENTRIES.items()):
+        if folder in target.parents:
+            line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
+                               "blake2b": file_hash(target)})
+            with lock, open(folder / JOURNAL, "a") as fh:
+                fh.write(line + "\n")
+            return
+
+
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary sibling path; on success rename it over ``target``, else delete it."""
@@ -67,6 +85,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, target)
+        _journal(target)
     except OSError as exc:
         if exc.filename is None:  # a writer that does not say which file: this one
             raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from exc
@@ -154,16 +173,7 @@ class CacheEntry:
         is deleted with the manifest and named in the log, so the stage's resume redoes just it."""
         if not (self.dir / MANIFEST).exists():
             return False
-        checks = self.manifest().get("checks", {})
-        bad = []
-        for name, want in checks.items():
-            path = self.dir / name
-            if not path.exists():
-                bad.append((name, "missing"))
-            elif path.stat().st_size != want["size"]:
-                bad.append((name, f"{path.stat().st_size} bytes, {want['size']} recorded"))
-            elif VERIFY_HASHES and file_hash(path) != want["blake2b"]:
-                bad.append((name, "content differs from the recorded hash"))
+        bad = self._damaged(self.manifest().get("checks", {}))
         if not bad:
             return True
         for name, why in bad:
@@ -177,12 +187,40 @@ class CacheEntry:
         return read_json(self.dir / MANIFEST)
 
     def begin(self, force: bool = False) -> None:
-        """Create the folder (emptied first when forced) and drop temporaries of a killed run."""
+        """Create the folder (emptied first when forced), drop temporaries of a killed run, and
+        check the files an unfinished run recorded in its journal: a file whose size (or hash,
+        with ``--verify``) differs is deleted, so the resume redoes it."""
         if force and self.dir.exists():
             shutil.rmtree(self.dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
             stale.unlink()
+        journal = self.dir / JOURNAL
+        if journal.exists():
+            records: dict[str, dict] = {}
+            for line in journal.read_text().splitlines():
+                try:
+                    rec = json.loads(line)
+                except json.JSONDecodeError:
+                    continue  # a line cut short by a kill: its file is checked by the stage
+                records[rec["file"]] = rec
+            for name, why in self._damaged(records):
+                log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
+                (self.dir / name).unlink(missing_ok=True)
+        _OPEN_ENTRIES[self.dir.resolve()] = threading.Lock()
+
+    def _damaged(self, checks: dict[str, dict]) -> list[tuple[str, str]]:
+        """(file, why) of recorded files that are missing or differ in size (or hash, with --verify)."""
+        bad = []
+        for name, want in checks.items():
+            path = self.dir / name
+            if not path.exists():
+                bad.append((name, "missing"))
+            elif path.stat().st_size != want["size"]:
+                bad.append((name, f"{path.stat().st_size} bytes, {want['size']} recorded"))
+            elif VERIFY_HASHES and file_hash(path) != want["blake2b"]:
+                bad.append((name, "content differs from the recorded hash"))
+        return bad
 
     def finish(self, files: list[str], timings: dict | None = None, **extra: Any) -> None:
         """Write the manifest last: config, inputs, code version, timings and files."""
@@ -198,7 +236,9 @@ class CacheEntry:
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
             **extra,
         }
+        _OPEN_ENTRIES.pop(self.dir.resolve(), None)
         write_json_atomic(self.dir / MANIFEST, payload)
+        (self.dir / JOURNAL).unlink(missing_ok=True)
 
 
 def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str],
