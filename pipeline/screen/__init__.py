@@ -105,9 +105,9 @@ class ScreenSpace:
                     wp.array(np.asarray(ellipsoids.bounds, np.float32), dtype=float, device=self.device),
                     camera.focal_px, w, h]
             bands = self._row_bands(h)
-            self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, depth, thickness] for r0, r1 in bands])
-            if with_normals:
-                self.launch.tasks(K.ellipsoid_normals, n, [[*args, r0, r1, depth, normals] for r0, r1 in bands])
+            for normals_pass in (0, 1) if with_normals else (0,):
+                self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals]
+                                                          for r0, r1 in bands])
         self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
         return depth, mask, thickness, normals
 

@@ -98,12 +98,18 @@ def splat_ellipsoids(
     height: int,
     row0: int,
     row1: int,
+    normals_pass: int,
     depth: wp.array(dtype=float),
     thickness: wp.array(dtype=float),
+    normals: wp.array(dtype=wp.vec3),
 ):
-    """Exact ray-ellipsoid splat into the rows [row0, row1): nearest front-surface depth and summed
-    chord length. Ellipsoid i is |shapes[i] (x - c_i)| <= 1 in view space; ``bounds`` are the
-    radii of their bounding spheres, which give each one's pixel box (cost: the pixels covered)."""
+    """Exact ray-ellipsoid splat into the rows [row0, row1). Ellipsoid i is |shapes[i] (x - c_i)| <= 1
+    in view space; ``bounds`` are the radii of their bounding spheres, which give each one's pixel
+    box (cost: the pixels covered).
+
+    First pass (``normals_pass`` 0): nearest front-surface depth and summed chord length. Second
+    pass (1): the analytic view-space normal M^2 (x - c) of the ellipsoid that won each pixel's
+    depth test (the one whose entry depth equals the splatted depth: the same arithmetic)."""
     i = wp.tid() + offset
     c = centers_view[i]
     box = splat_bounds(c, bounds[i], focal, width, height, row0, row1)
@@ -114,37 +120,11 @@ def splat_ellipsoids(
             hit = ray_ellipsoid(ray, c, m)
             if hit[0] > 0.0:
                 idx = py * width + px
-                wp.atomic_min(depth, idx, hit[0])
-                wp.atomic_add(thickness, idx, 2.0 * hit[1] * wp.length(ray))
-
-
-@wp.kernel
-def ellipsoid_normals(
-    offset: int,
-    centers_view: wp.array(dtype=wp.vec3),
-    shapes: wp.array(dtype=wp.mat33),
-    bounds: wp.array(dtype=float),
-    focal: float,
-    width: int,
-    height: int,
-    row0: int,
-    row1: int,
-    depth: wp.array(dtype=float),
-    normals: wp.array(dtype=wp.vec3),
-):
-    """Analytic view-space normal M^2 (x - c) of the ellipsoid that won each pixel's depth test
-    (the one whose entry depth equals the splatted depth: the same arithmetic as the splat)."""
-    i = wp.tid() + offset
-    c = centers_view[i]
-    box = splat_bounds(c, bounds[i], focal, width, height, row0, row1)
-    m = shapes[i]
-    for py in range(box[2], box[3] + 1):
-        for px in range(box[0], box[1] + 1):
-            ray = pixel_ray(px, py, width, height, focal)
-            hit = ray_ellipsoid(ray, c, m)
-            idx = py * width + px
-            if hit[0] > 0.0 and hit[0] == depth[idx]:
-                normals[idx] = wp.normalize(m * (m * (ray * hit[0] - c)))
+                if normals_pass == 0:
+                    wp.atomic_min(depth, idx, hit[0])
+                    wp.atomic_add(thickness, idx, 2.0 * hit[1] * wp.length(ray))
+                elif hit[0] == depth[idx]:
+                    normals[idx] = wp.normalize(m * (m * (ray * hit[0] - c)))
 
 
 @wp.kernel

@@ -161,6 +161,43 @@ def raycast_mesh(
     depth_out[idx] = q.t / length
 
 
+@wp.func
+def kernel_sum(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+               reach: float, x: wp.vec3, gradient: int) -> wp.vec4:
+    """(sum_j det(G_j) P(|G_j r|), and with ``gradient`` its gradient) at x, r = x - c_j, P the
+    poly6 profile (1 - q^2)^3 with grad det(G) P = -6 det(G) (1 - q^2)^2 G^T G r."""
+    phi = float(0.0)
+    grad = wp.vec3(0.0, 0.0, 0.0)
+    q = wp.hash_grid_query(grid, x, reach)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        G = kernel_g[j]
+        u = G * (x - centres[j])
+        q2 = wp.dot(u, u)
+        if q2 < 1.0:
+            t = 1.0 - q2
+            det = wp.determinant(G)
+            phi += det * t * t * t
+            if gradient != 0:
+                grad += (wp.transpose(G) * u) * (-6.0 * det * t * t)
+    return wp.vec4(phi, grad[0], grad[1], grad[2])
+
+
+@wp.func
+def density_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+               reach: float, amplitude: float, x: wp.vec3) -> float:
+    """phi(x) = sum_j V det(G_j) P(|G_j (x - c_j)|), with amplitude = V times the poly6 norm."""
+    return kernel_sum(grid, centres, kernel_g, reach, x, 0)[0] * amplitude
+
+
+@wp.func
+def density_gradient_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+                        reach: float, x: wp.vec3) -> wp.vec3:
+    """The direction of grad phi at x (without the constant V times the poly6 norm)."""
+    s = kernel_sum(grid, centres, kernel_g, reach, x, 1)
+    return wp.vec3(s[1], s[2], s[3])
+
+
 @wp.kernel
 def density_gradient_normals(
     offset: int,
@@ -178,57 +215,12 @@ def density_gradient_normals(
     grad V det(G) (1 - |G r|^2)^3 = -6 V det(G) (1 - |G r|^2)^2 G^T G r, with r = x - c.
     """
     k = wp.tid() + offset
-    x = vertices[k]
-    grad = wp.vec3(0.0, 0.0, 0.0)
-    q = wp.hash_grid_query(grid, x, reach)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        G = kernel_g[j]
-        r = x - centres[j]
-        u = G * r
-        q2 = wp.dot(u, u)
-        if q2 < 1.0:
-            t = 1.0 - q2
-            grad += (wp.transpose(G) * u) * (-6.0 * wp.determinant(G) * t * t)
+    grad = density_gradient_at(grid, centres, kernel_g, reach, vertices[k])
     ln = wp.length(grad)
     if ln > 0.0:
         normals_out[k] = -grad / ln
     else:
         normals_out[k] = wp.vec3(0.0, 0.0, 0.0)
-
-
-@wp.func
-def density_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
-               reach: float, amplitude: float, x: wp.vec3) -> float:
-    """phi(x) = sum_j V det(G_j) P(|G_j (x - c_j)|), with amplitude = V times the poly6 norm."""
-    phi = float(0.0)
-    q = wp.hash_grid_query(grid, x, reach)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        G = kernel_g[j]
-        u = G * (x - centres[j])
-        q2 = wp.dot(u, u)
-        if q2 < 1.0:
-            t = 1.0 - q2
-            phi += wp.determinant(G) * t * t * t
-    return phi * amplitude
-
-
-@wp.func
-def density_gradient_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
-                        reach: float, x: wp.vec3) -> wp.vec3:
-    """The direction of grad phi at x (without the constant V times the poly6 norm)."""
-    grad = wp.vec3(0.0, 0.0, 0.0)
-    q = wp.hash_grid_query(grid, x, reach)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        G = kernel_g[j]
-        u = G * (x - centres[j])
-        q2 = wp.dot(u, u)
-        if q2 < 1.0:
-            t = 1.0 - q2
-            grad += (wp.transpose(G) * u) * (-6.0 * wp.determinant(G) * t * t)
-    return grad
 
 
 @wp.kernel
