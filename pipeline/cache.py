@@ -9,6 +9,7 @@ it resume, and the manifest (written last) marks the entry complete.
 
 from __future__ import annotations
 
+import ast
 import errno
 import hashlib
 import importlib.util
@@ -33,23 +34,48 @@ class CacheError(RuntimeError):
     """A cache file is missing or unreadable; the message names the file."""
 
 
-def _module_files(module: str) -> list[Path]:
-    spec = importlib.util.find_spec(module)
-    if spec is None or spec.origin is None:
-        raise ImportError(f"cannot locate module {module}")
-    origin = Path(spec.origin)
-    if spec.submodule_search_locations:
-        return sorted(p for p in origin.parent.rglob("*.py"))
-    return [origin]
+PROJECT_PACKAGES = ("pipeline", "stages")
 
 
-def code_version(modules: list[str] | tuple[str, ...]) -> str:
-    """Hash of the source of the given modules/packages (all ``.py`` files of a package)."""
+def import_closure(module: str) -> tuple[str, ...]:
+    """The project modules ``module`` imports, directly or through others (itself included): the
+    code its results depend on, so a cache key over them cannot go stale when one of them changes.
+
+    Read from the source (``ast``), imports inside functions included; packages count with their
+    ``__init__``; anything outside ``pipeline`` and ``stages`` (numpy, warp, torch) is left out."""
+    seen: set[str] = set()
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name in seen or name.split(".")[0] not in PROJECT_PACKAGES:
+            continue
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, AttributeError, ValueError):  # "pkg.module.function": not a module
+            continue
+        if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+            continue
+        seen.add(name)
+        parts = name.split(".")
+        package = parts if spec.submodule_search_locations else parts[:-1]
+        todo += [".".join(parts[:k]) for k in range(1, len(parts))]  # parent packages' __init__
+        for node in ast.walk(ast.parse(Path(spec.origin).read_text(), spec.origin)):
+            if isinstance(node, ast.Import):
+                todo += [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = ".".join(package[: len(package) - node.level + 1] + ([node.module] if node.module else [])) \
+                    if node.level else (node.module or "")
+                todo += [base] + [f"{base}.{a.name}" for a in node.names]
+    return tuple(sorted(seen))
+
+
+def code_version(stage_module: str) -> str:
+    """Hash of the source of every project module ``stage_module`` imports (``import_closure``)."""
     digest = hashlib.sha256()
-    files = sorted({f for m in modules for f in _module_files(m)})
-    for f in files:
-        digest.update(f.name.encode())
-        digest.update(f.read_bytes())
+    for name in import_closure(stage_module):
+        path = Path(importlib.util.find_spec(name).origin)
+        digest.update(name.encode())
+        digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
 
 
@@ -241,10 +267,10 @@ class CacheEntry:
         (self.dir / JOURNAL).unlink(missing_ok=True)
 
 
-def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str],
-          modules: list[str] | tuple[str, ...], device: str) -> CacheEntry:
-    """The cache entry of ``stage`` for ``name`` given its config fields, inputs and code."""
-    code = code_version(modules)
+def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str], device: str) -> CacheEntry:
+    """The cache entry of ``stage`` for ``name`` given its config fields, inputs and code (the source
+    of ``stages.<stage>`` and of every project module it imports)."""
+    code = code_version(f"stages.{stage}")
     meta = {"config": config, "inputs": inputs, "code_version": code, "device": device}
     return CacheEntry(Path(root), stage, name, make_key(meta), meta)
 

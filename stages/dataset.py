@@ -33,8 +33,6 @@ from stages import simulate
 from stages.common import Run, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
-MODULES = ("pipeline.screen", "pipeline.surface", "pipeline.camera", "pipeline.exr", "pipeline.views",
-           "stages.dataset")
 CAMERAS = ("static", "orbit")
 
 
@@ -58,7 +56,7 @@ def dataset_entry(run: Run, scene: SceneConfig, sim_key: str) -> cache.CacheEntr
     for key in ("holdout_scenes", "workers"):  # these change no file of the entry
         params.pop(key)
     config = {"dataset": params, "cameras": to_dict(scene.cameras)}
-    return cache.entry(run.data_dir, "dataset", scene.name, config, {"simulate": sim_key}, MODULES, run.device)
+    return cache.entry(run.data_dir, "dataset", scene.name, config, {"simulate": sim_key}, run.device)
 
 
 class _Worker(threading.local):

@@ -37,8 +37,6 @@ from stages import dataset, render, simulate
 from stages.common import Run, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
-MODULES = ("pipeline.metrics", "pipeline.render", "pipeline.shading", "pipeline.screen", "pipeline.model",
-           "stages.evaluate")
 TIMED_FRAMES = 3
 
 
@@ -208,7 +206,7 @@ def main(argv: list[str] | None = None) -> None:
     keys = {f"{s.name}/{c}": dataset.ensure(run, s).key for s, c in seqs}
     entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
                         {"evaluate": to_dict(run.config.evaluate), "render": to_dict(run.config.render)},
-                        {**keys, "weights": weights}, MODULES, run.device)
+                        {**keys, "weights": weights}, run.device)
     if entry.is_complete() and not run.force:
         log.info("evaluate: cached (%s)", entry.dir / "report.md")
         return

@@ -35,8 +35,6 @@ from stages import simulate
 from stages.common import Run, StageError, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
-MODULES = ("pipeline.render", "pipeline.shading", "pipeline.screen", "pipeline.surface", "pipeline.camera",
-           "pipeline.model", "pipeline.views", "pipeline.media", "pipeline.exr", "pipeline.writer", "stages.render")
 SHIPPED = Path(__file__).resolve().parents[1] / "pipeline" / "weights" / "refiner.pt"
 COMPARED = ("bilateral", "nrf", "refined", "mesh")
 
@@ -78,7 +76,7 @@ def render_entry(run: Run, scene: SceneConfig, sim_key: str, weights: str) -> ca
         filters.pop(key)
     config = {"render": to_dict(run.config.render), "filters": filters, "cameras": to_dict(scene.cameras)}
     return cache.entry(run.data_dir, "render", scene.name, config, {"simulate": sim_key, "weights": weights},
-                       MODULES, run.device)
+                       run.device)
 
 
 def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntry:

@@ -23,7 +23,6 @@ from pipeline.timing import Timings
 from stages.common import Run, StageError, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
-MODULES = ("pipeline.sim", "pipeline.particles", "pipeline.frames", "stages.simulate")
 
 
 def source_files(scene: SceneConfig) -> list[str]:
@@ -43,7 +42,7 @@ def sim_entry(run: Run, scene: SceneConfig) -> cache.CacheEntry:
         config = {"scene": physics, "files": files}
     else:
         config = {"scene": physics, "simulate": to_dict(run.config.simulate), "seed": run.config.seed}
-    return cache.entry(run.data_dir, "simulate", scene.name, config, {}, MODULES, run.device)
+    return cache.entry(run.data_dir, "simulate", scene.name, config, {}, run.device)
 
 
 def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntry:

@@ -28,7 +28,6 @@ from stages import dataset
 from stages.common import Run, StageError, make_run, parse_args, stage_main
 
 log = logging.getLogger("deep_ssfr")
-MODULES = ("pipeline.model", "stages.train")
 
 
 def train_scenes(run: Run) -> list[str]:
@@ -67,7 +66,7 @@ def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
     config["seed"] = run.config.seed
     config["holdout_scenes"] = list(run.config.dataset.holdout_scenes)
     name = Path(run.loaded.path).stem
-    return cache.entry(run.data_dir, "train", name, config, dataset_keys, MODULES, run.device)
+    return cache.entry(run.data_dir, "train", name, config, dataset_keys, run.device)
 
 
 def _spread(items: list, k: int) -> list:

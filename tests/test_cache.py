@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import yaml
@@ -57,11 +58,43 @@ def test_keys_follow_config_inputs_and_code(tiny_dam):
     assert simulate.sim_entry(Run(other, "cpu", False), scene).key == key
     changed = load(tiny_dam, overrides={"simulate": {"substeps": 5}})
     assert simulate.sim_entry(Run(changed, "cpu", False), changed.scenes["tiny_dam"]).key != key
-    # the key covers the code: another module set gives another key
-    a = cache.entry(tmp := tiny_dam.parent, "s", "n", {"a": 1}, {}, ["pipeline.sim"], "cpu")
-    b = cache.entry(tmp, "s", "n", {"a": 1}, {}, ["pipeline.sim", "pipeline.frames"], "cpu")
-    assert a.key != b.key
-    assert cache.entry(tmp, "s", "n", {"a": 1}, {"up": "x"}, ["pipeline.sim"], "cpu").key != a.key
+    # the key covers the inputs' keys
+    a = cache.entry(tiny_dam.parent, "simulate", "n", {"a": 1}, {}, "cpu")
+    assert cache.entry(tiny_dam.parent, "simulate", "n", {"a": 1}, {"up": "x"}, "cpu").key != a.key
+
+
+def _stage_keys(code: Path) -> dict[str, str]:
+    """The code hash of every stage, computed in a fresh interpreter over the code at ``code``."""
+    import json as _json
+
+    script = ("import json; from pipeline.cache import code_version; print(json.dumps({s: code_version('stages.' + s) "
+              "for s in ('simulate', 'dataset', 'train', 'render', 'evaluate')}))")
+    out = subprocess.run([sys.executable, "-c", script], cwd=code, env={"PYTHONPATH": str(code), "PATH": ""},
+                         capture_output=True, text=True, check=True).stdout
+    return _json.loads(out)
+
+
+def test_a_stage_key_follows_every_module_it_imports(tmp_path):
+    """Keys come from the stage's import closure, not a hand-kept list: editing a module a stage
+    imports only indirectly changes that stage's key (and its dependents'), and editing a module
+    it does not import leaves it alone. Edits happen in a temporary copy of the code."""
+    import shutil
+
+    code = tmp_path / "code"
+    for package in ("pipeline", "stages"):
+        shutil.copytree(ROOT / package, code / package, ignore=shutil.ignore_patterns("__pycache__", "weights"))
+    before = _stage_keys(code)
+    # pipeline.parallel reaches simulate only through the solver (a list once missed it)
+    with open(code / "pipeline" / "parallel.py", "a") as fh:
+        fh.write("\n# an edit\n")
+    after = _stage_keys(code)
+    assert all(after[s] != before[s] for s in before), "every stage runs the launcher"
+    # the render-time refiner is imported by render and evaluate only
+    with open(code / "pipeline" / "model" / "inference.py", "a") as fh:
+        fh.write("\n# an edit\n")
+    last = _stage_keys(code)
+    assert last["render"] != after["render"] and last["evaluate"] != after["evaluate"]
+    assert all(last[s] == after[s] for s in ("simulate", "dataset", "train"))
 
 
 def test_sigkill_half_way_then_resume_equals_clean_run(tiny_dam, tmp_path):
