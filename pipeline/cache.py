@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import errno
+import functools
 import hashlib
 import importlib.util
 import json
@@ -37,6 +38,7 @@ class CacheError(RuntimeError):
 PROJECT_PACKAGES = ("pipeline", "stages")
 
 
+@functools.cache
 def import_closure(module: str) -> tuple[str, ...]:
     """The project modules ``module`` imports, directly or through others (itself included): the
     code its results depend on, so a cache key over them cannot go stale when one of them changes.
@@ -69,8 +71,10 @@ def import_closure(module: str) -> tuple[str, ...]:
     return tuple(sorted(seen))
 
 
+@functools.cache
 def code_version(stage_module: str) -> str:
-    """Hash of the source of every project module ``stage_module`` imports (``import_closure``)."""
+    """Hash of the source of every project module ``stage_module`` imports (``import_closure``);
+    computed once per process (stages ask for entries many times, the source does not change)."""
     digest = hashlib.sha256()
     for name in import_closure(stage_module):
         path = Path(importlib.util.find_spec(name).origin)
@@ -199,12 +203,8 @@ class CacheEntry:
         is deleted with the manifest and named in the log, so the stage's resume redoes just it."""
         if not (self.dir / MANIFEST).exists():
             return False
-        bad = self._damaged(self.manifest().get("checks", {}))
-        if not bad:
+        if not self._drop_damaged(self.manifest().get("checks", {})):
             return True
-        for name, why in bad:
-            log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
-            (self.dir / name).unlink(missing_ok=True)
         (self.dir / MANIFEST).unlink()
         return False
 
@@ -230,13 +230,12 @@ class CacheEntry:
                 except json.JSONDecodeError:
                     continue  # a line cut short by a kill: its file is checked by the stage
                 records[rec["file"]] = rec
-            for name, why in self._damaged(records):
-                log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
-                (self.dir / name).unlink(missing_ok=True)
+            self._drop_damaged(records)
         _OPEN_ENTRIES[self.dir.resolve()] = threading.Lock()
 
-    def _damaged(self, checks: dict[str, dict]) -> list[tuple[str, str]]:
-        """(file, why) of recorded files that are missing or differ in size (or hash, with --verify)."""
+    def _drop_damaged(self, checks: dict[str, dict]) -> bool:
+        """Delete (and name in the log) the recorded files that are missing or differ in size (or
+        hash, with --verify), so the stage's resume redoes them; True when there were any."""
         bad = []
         for name, want in checks.items():
             path = self.dir / name
@@ -246,7 +245,10 @@ class CacheEntry:
                 bad.append((name, f"{path.stat().st_size} bytes, {want['size']} recorded"))
             elif VERIFY_HASHES and file_hash(path) != want["blake2b"]:
                 bad.append((name, "content differs from the recorded hash"))
-        return bad
+        for name, why in bad:
+            log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
+            (self.dir / name).unlink(missing_ok=True)
+        return bool(bad)
 
     def finish(self, files: list[str], timings: dict | None = None, **extra: Any) -> None:
         """Write the manifest last: config, inputs, code version, timings and files."""

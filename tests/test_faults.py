@@ -17,6 +17,19 @@ def _enospc(*args, **kwargs):
     raise OSError(errno.ENOSPC, "No space left on device")
 
 
+def _full_at_call(k: int, writer):
+    """``writer`` that fails with ENOSPC on its k-th call (the disk fills half way through a run)."""
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == k:
+            _enospc()
+        return writer(*args, **kwargs)
+
+    return flaky
+
+
 def _one_line(err: str) -> str:
     """The error line of a stage's stderr (progress bars aside): exactly one, and no traceback."""
     lines = [line for line in err.replace("\r", "\n").splitlines() if "error:" in line or "Traceback" in line]
@@ -28,15 +41,7 @@ def test_disk_full_while_simulating_is_one_line_and_resumes(tiny_dam, capsys, mo
     """The frame writer fails with ENOSPC half way: one line naming the stage, the file and the
     cause; no manifest (the entry is not complete); a later run resumes and completes."""
     real = np.savez
-    calls = {"n": 0}
-
-    def flaky(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 4:
-            _enospc()
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(np, "savez", flaky)
+    monkeypatch.setattr(np, "savez", _full_at_call(4, real))
     assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("simulate: error: No space left on device") and "frame_0004.npz" in line
@@ -360,15 +365,7 @@ def test_a_damaged_middle_frame_of_an_unfinished_entry_is_redone(tiny_dam, caplo
     journal of the unfinished entry records each finished file, so the resume redoes that frame
     and the sequence ends equal to a clean run's."""
     real = np.savez
-    calls = {"n": 0}
-
-    def flaky(*args, **kwargs):
-        calls["n"] += 1
-        if calls["n"] == 5:
-            _enospc()
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(np, "savez", flaky)
+    monkeypatch.setattr(np, "savez", _full_at_call(5, real))
     assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 1
     monkeypatch.setattr(np, "savez", real)
     (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()

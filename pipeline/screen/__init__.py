@@ -71,12 +71,16 @@ class ScreenSpace:
 
     # ---- kernels on device arrays ---------------------------------------------------------------
 
-    def _splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> tuple[wp.array, ...]:
-        w, h = camera.width, camera.height
-        depth, thickness = self._buffer("depth", w * h), self._buffer("thickness", w * h)
-        mask = self._buffer("mask", w * h)
+    def _splat_buffers(self, n: int) -> tuple[wp.array, wp.array, wp.array]:
+        """Depth (cleared to empty), mask and thickness (cleared to 0) buffers for a splat."""
+        depth, mask, thickness = (self._buffer(name, n) for name in ("depth", "mask", "thickness"))
         depth.fill_(_EMPTY)
         thickness.zero_()
+        return depth, mask, thickness
+
+    def _splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> tuple[wp.array, ...]:
+        w, h = camera.width, camera.height
+        depth, mask, thickness = self._splat_buffers(w * h)
         n = len(positions_world)
         if n:
             centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
@@ -90,10 +94,8 @@ class ScreenSpace:
     def _splat_ellipsoids(self, ellipsoids: Ellipsoids, camera: Camera,
                           with_normals: bool = False) -> tuple[wp.array, ...]:
         w, h = camera.width, camera.height
-        depth, thickness = self._buffer("depth", w * h), self._buffer("thickness", w * h)
-        mask, normals = self._buffer("mask", w * h), self._buffer("splat_normals", w * h, wp.vec3)
-        depth.fill_(_EMPTY)
-        thickness.zero_()
+        depth, mask, thickness = self._splat_buffers(w * h)
+        normals = self._buffer("splat_normals", w * h, wp.vec3)
         normals.zero_()
         n = len(ellipsoids.centres)
         if n:
@@ -211,13 +213,13 @@ class ScreenSpace:
         depth, mask, thickness = self._splat(positions_world, radius, camera)
         return SplatResult(*(self._download(a, shape) for a in (depth, mask, thickness)))
 
-    def splat_ellipsoids(self, ellipsoids: Ellipsoids, camera: Camera) -> SplatResult:
-        """Nearest ellipsoid-surface depth, mask, summed chord thickness and the analytic view-space
-        normal of the nearest ellipsoid per pixel."""
+    def splat_ellipsoids(self, ellipsoids: Ellipsoids, camera: Camera, normals: bool = True) -> SplatResult:
+        """Nearest ellipsoid-surface depth, mask, summed chord thickness and (with ``normals``, a
+        second pass) the analytic view-space normal of the nearest ellipsoid per pixel."""
         shape = (camera.height, camera.width)
-        depth, mask, thickness, normals = self._splat_ellipsoids(ellipsoids, camera, with_normals=True)
+        depth, mask, thickness, n = self._splat_ellipsoids(ellipsoids, camera, with_normals=normals)
         return SplatResult(*(self._download(a, shape) for a in (depth, mask, thickness)),
-                           normals=self._download(normals, (*shape, 3)))
+                           normals=self._download(n, (*shape, 3)) if normals else None)
 
     def gaussian(self, depth: np.ndarray, sigma_px: float) -> np.ndarray:
         """Naive separable Gaussian blur restricted to fluid pixels (fixed screen-space size)."""

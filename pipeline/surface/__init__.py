@@ -232,7 +232,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     if len(c) == 0:
         return np.zeros((h, w, 3), np.float32), empty, empty, empty
     supports = Ellipsoids(c, (np.eye(3, dtype=np.float32)[None] / e[:, None, None]).astype(np.float32), e)
-    t_start = ss.splat_ellipsoids(supports, camera).depth
+    t_start = ss.splat_ellipsoids(supports, camera, normals=False).depth
     reach = float(e.max())
     grid = _hash_grid(centres, c, reach, device)
     amplitude = (2.0 * radius) ** 3 * K.POLY6_NORM
