@@ -44,7 +44,7 @@ simulate: setup
 	$(PY) -m stages.simulate $(STAGE_ARGS)
 
 export: setup
-	$(PY) -m stages.simulate export $(STAGE_ARGS) --format $(FORMAT)
+	$(PY) -m stages.export $(STAGE_ARGS) --format $(FORMAT)
 
 dataset: setup
 	$(PY) -m stages.dataset $(STAGE_ARGS)

@@ -21,16 +21,16 @@ import numpy as np
 import warp as wp
 
 from pipeline.camera import camera_for_frame
+from pipeline.evaluate.metrics import angular_errors
 from pipeline.exr import stack
-from pipeline.frames import frame_name, load_frame, read_sequence_info
-from pipeline.metrics import angular_errors
-from pipeline.model.inference import load_refiner
+from pipeline.frames import frame_name, load_frame, spread
+from pipeline.methods import refine
+from pipeline.model.inference import SHIPPED_WEIGHTS, load_refiner
 from pipeline.parallel import Launcher
-from pipeline.render import refine
 from pipeline.screen import ScreenSpace
 from pipeline.surface import reconstruct
 from pipeline.views import screen_space_inputs, target_channels
-from stages import evaluate, simulate
+from stages import evaluate
 from stages.common import make_run, parse_args
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,20 +47,18 @@ def main() -> None:
     wp.config.quiet = True
     run = make_run(parse_args("evaluate", ["--config", args.config]))
     base = run.config.dataset
-    refiner = load_refiner(ROOT / "pipeline" / "weights" / "refiner.pt")
+    refiner = load_refiner(SHIPPED_WEIGHTS)
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
     errors = {(s, m, mode): [] for s in args.sizes for m in METHODS for mode in MODES}
     times = {(s, m, mode): [] for s in args.sizes for m in ("bilateral", "nrf") for mode in MODES}
     radii = {s: [] for s in args.sizes}
     seqs = evaluate.sequences(run)
-    for scene, path in seqs:
-        sim = simulate.ensure(run, scene)
-        info = read_sequence_info(sim.dir)
-        frames = list(range(1, info.frames + 1, base.frame_stride))
-        picks = np.linspace(0, len(frames) - 1, min(args.frames, len(frames))).round().astype(int)
+    for seq in seqs:
+        scene, path, r = seq.scene, seq.camera, seq.particle_radius
+        frames = [rec["frame"] for rec in seq.records]
+        picks = spread(list(range(len(frames))), args.frames)
         for index in picks:
-            x, _ = load_frame(sim.path(frame_name(frames[index])))
-            r = info.particle_radius
+            x, _ = load_frame(seq.sim_dir / frame_name(frames[index]))
             mesh = reconstruct(x, r, base, launch)
             for size in args.sizes:
                 cam = camera_for_frame(scene.cameras, path, int(index), len(frames), size, size)

@@ -34,12 +34,12 @@ from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
 
 from pipeline.config import DatasetConfig, RenderConfig  # noqa: E402
 from pipeline.exr import write_exr  # noqa: E402
+from pipeline.methods import normal_source, shade_frame  # noqa: E402
 from pipeline.model.data import make_input  # noqa: E402
-from pipeline.model.inference import Refiner  # noqa: E402
+from pipeline.model.inference import SHIPPED_WEIGHTS, Refiner  # noqa: E402
 from pipeline.model.trainer import load_generator, predict  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.particles import read_particles  # noqa: E402
-from pipeline.render import normal_source, shade_frame  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402
 from pipeline.shading import Shader  # noqa: E402
 from pipeline.surface import particle_ellipsoids  # noqa: E402
@@ -147,7 +147,7 @@ def main() -> None:
     args = parser.parse_args()
     wp.config.quiet = True
     p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
-    generator, _ = load_generator(ROOT / "pipeline" / "weights" / "refiner.pt")
+    generator, _ = load_generator(SHIPPED_WEIGHTS)
     refiner = Refiner(generator, splat=args.splat)
     ss, launch, shader = ScreenSpace("cpu"), Launcher("cpu"), Shader("cpu")
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"

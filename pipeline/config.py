@@ -397,8 +397,8 @@ class EvaluateConfig:
 
     methods: tuple[str, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined")
     """Methods compared with the mesh reference."""
-    max_frames: int = _f(0, ge=0)
-    """Frames per held-out sequence (0: all)."""
+    frames_per_sequence: int = _f(0, ge=0)
+    """Frames evaluated per held-out sequence, evenly spread over it (0: all)."""
     imported_scenes: tuple[str, ...] = ()
     """Imported particle scenes also evaluated."""
 

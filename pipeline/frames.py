@@ -18,6 +18,21 @@ def frame_name(index: int, ext: str = "npz") -> str:
     return f"frame_{index:04d}.{ext}"
 
 
+def select_frames(total: int, stride: int = 1, first: int = 0) -> list[int]:
+    """Frame numbers of a sequence of ``total`` frames that a stage uses: every ``stride``-th from
+    frame 1, then the first ``first`` of those (0: all). One rule for dataset, render and the CLI."""
+    frames = list(range(1, total + 1, stride))
+    return frames[:first] if first else frames
+
+
+def spread(items: list, count: int) -> list:
+    """``count`` items evenly spread over ``items``, first and last included (all of them when
+    ``count`` is 0 or at least their number): samples that cover a whole sequence."""
+    if not count or len(items) <= count:
+        return list(items)
+    return [items[int(i)] for i in np.linspace(0, len(items) - 1, count).round()]
+
+
 @dataclass(frozen=True)
 class SequenceInfo:
     """What downstream stages need to know about a particle sequence."""
@@ -80,5 +95,5 @@ def completed_frames(folder: Path, total: int) -> int:
     return k
 
 
-__all__ = ["SequenceInfo", "frame_name", "save_frame", "load_frame", "write_sequence_info",
+__all__ = ["SequenceInfo", "frame_name", "select_frames", "spread", "save_frame", "load_frame", "write_sequence_info",
            "read_sequence_info", "completed_frames"]

@@ -17,9 +17,9 @@ from pathlib import Path
 import torch
 
 from pipeline import cache
+from pipeline.model.inference import SHIPPED_WEIGHTS as SHIPPED
 from stages import train
 from stages.common import make_run, parse_args, stage_main
-from stages.render import SHIPPED
 
 log = logging.getLogger("deep_ssfr")
 ROOT = Path(__file__).resolve().parents[1]

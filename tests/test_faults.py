@@ -221,7 +221,9 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
             failures.add(Path(line.split("(")[-1].split(")")[0]).suffix)
     assert {".exr", ".png"} <= failures, failures
     # the videos take a few kB: fill the disk right before the real ffmpeg writes them
-    real_video = render.write_video
+    from pipeline import renderer
+
+    real_video = renderer.write_video
 
     def video_on_a_full_disk(*args, **kwargs):
         fill.unlink(missing_ok=True)
@@ -230,12 +232,12 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
 
     shutil.rmtree(small_disk / "data" / "render", ignore_errors=True)
     fill.unlink(missing_ok=True)
-    render.write_video = video_on_a_full_disk
+    renderer.write_video = video_on_a_full_disk
     try:
         capsys.readouterr()
         assert stage_main("render", render.main, ["--config", str(config)]) == 1
     finally:
-        render.write_video = real_video
+        renderer.write_video = real_video
     line = _one_line(capsys.readouterr().err)
     assert "No space left on device" in line and line.split("(")[-1].startswith(str(small_disk)) and ".mp4)" in line
     fill.unlink()
@@ -279,7 +281,9 @@ def test_disk_full_while_exporting_is_one_line(tiny_dam, capsys, monkeypatch):
     assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
     monkeypatch.setattr(Path, "write_bytes", _enospc)
     capsys.readouterr()
-    assert stage_main("export", simulate.export_main, ["--config", str(tiny_dam), "--format", "ply"]) == 1
+    from stages import export
+
+    assert stage_main("export", export.main, ["--config", str(tiny_dam), "--format", "ply"]) == 1
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("export: error: No space left on device") and "frame_0001.ply" in line, line
 

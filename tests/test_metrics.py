@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.metrics import angular_errors, iou, normal_mask, summarize_angles
+from pipeline.evaluate.metrics import angular_errors, iou, normal_mask, summarize_angles
 
 
 def _random_normals(seed=0, shape=(32, 40)):

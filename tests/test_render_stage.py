@@ -24,7 +24,7 @@ def _config(tmp_path, weights: str, **render_opts) -> str:
     body["simulate"].update({"particle_radius": 0.03, "frames": 4})
     body["dataset"] = {"width": 64, "height": 64, "frame_stride": 2, "holdout_scenes": ["merging"]}
     body["render"] = {"width": 64, "height": 64, "frame_stride": 2, "weights": weights, **render_opts}
-    body["evaluate"] = {"max_frames": 2, "imported_scenes": ["splishsplash_double_dam_break"]}
+    body["evaluate"] = {"frames_per_sequence": 2, "imported_scenes": ["splishsplash_double_dam_break"]}
     path = tmp_path / "default_small.yaml"
     path.write_text(yaml.safe_dump(body))
     return str(path)

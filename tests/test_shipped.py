@@ -11,8 +11,9 @@ import yaml
 
 from pipeline.camera import camera_for_frame
 from pipeline.config import load
-from pipeline.metrics import angular_errors, normal_mask
+from pipeline.evaluate.metrics import angular_errors, normal_mask
 from pipeline.model.data import input_channels, make_input
+from pipeline.model.inference import SHIPPED_WEIGHTS as SHIPPED
 from pipeline.model.trainer import load_generator, predict
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
@@ -21,7 +22,6 @@ from pipeline.surface import particle_ellipsoids, reconstruct
 from pipeline.views import screen_space_inputs, target_channels
 from stages import demo
 from stages.common import stage_main
-from stages.render import SHIPPED
 from tests.conftest import ROOT
 
 

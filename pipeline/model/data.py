@@ -71,13 +71,15 @@ class Frame:
     inputs: np.ndarray   # C x H x W
     target: np.ndarray   # 3 x H x W
     name: str
+    fluid: np.ndarray    # H x W bool: pixels the input splat shows as fluid
 
 
 def load_frame(path, auxiliary: bool = True, splat: Splat = "sphere") -> Frame:
     """Read the channels a training example needs from a dataset EXR."""
     names = input_channels(splat)
-    ch = read_exr(path, [*names.normal, names.raw, names.blurred, *TARGET])
-    return Frame(make_input(ch, auxiliary, splat), np.stack([ch[c] for c in TARGET]).astype(np.float32), str(path))
+    ch = read_exr(path, [*names.normal, names.raw, names.blurred, names.fluid, *TARGET])
+    return Frame(make_input(ch, auxiliary, splat), np.stack([ch[c] for c in TARGET]).astype(np.float32), str(path),
+                 ch[names.fluid] > 0)
 
 
 def flip_horizontal(arr: np.ndarray, normal_slices: tuple[slice, ...]) -> np.ndarray:

@@ -12,6 +12,8 @@ generator's stride, so the stride-2 convolutions sample the same pixels as on th
 from __future__ import annotations
 
 import copy
+import hashlib
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -93,3 +95,21 @@ def load_refiner(path, device: str | torch.device = "cpu") -> Refiner:
     cfg = meta["config"]
     return Refiner(generator, device, auxiliary=bool(cfg["auxiliary_features"]),
                    splat=cfg.get("input_splat", "sphere"))
+
+
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "refiner.pt"
+"""The generator shipped in the package (``make ship`` replaces it in place)."""
+
+
+def load_weights(path: Path, device: str | torch.device = "cpu") -> tuple[Refiner, str]:
+    """A refiner from a checkpoint file and a short content hash of it (for cache keys); a missing
+    or unreadable file raises ``FileNotFoundError`` / ``RuntimeError`` naming it."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no generator checkpoint at {path}; run `make train` and set render.weights to "
+                                "'trained' or a checkpoint path, or restore the shipped weights")
+    try:
+        refiner = load_refiner(path, device)
+    except Exception as exc:
+        raise RuntimeError(f"cannot load generator checkpoint {path} ({exc})") from None
+    return refiner, hashlib.sha256(path.read_bytes()).hexdigest()[:12]

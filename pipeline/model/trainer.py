@@ -139,11 +139,11 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
                        threshold: float = 0.5) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Angular error of refined and input (bilateral) normals against the mesh target.
 
-    Pixels count where both the compared map and the target show fluid (a refined pixel is
-    fluid when its normal is at least ``threshold`` long). Returns the summary and the refined
+    Pixels count where both the compared map and the target show fluid (refined pixels by
+    ``metrics.refined_mask``, as the renderer drops them). Returns the summary and the refined
     maps (for the PNG sheet).
     """
-    from pipeline.metrics import angular_errors, iou, normal_mask, summarize_angles
+    from pipeline.evaluate.metrics import angular_errors, iou, normal_mask, refined_mask, summarize_angles
 
     refined_err, input_err, ious, preds = [], [], [], []
     for f in frames:
@@ -151,7 +151,7 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
         target = np.moveaxis(f.target, 0, -1)
         given = np.moveaxis(f.inputs[:3], 0, -1)
         t_mask = normal_mask(target)
-        r_mask = normal_mask(pred, threshold)
+        r_mask = refined_mask(pred, f.fluid, threshold)
         refined_err.append(angular_errors(pred, target, r_mask & t_mask))
         input_err.append(angular_errors(given, target, normal_mask(given) & t_mask))
         ious.append(iou(r_mask, t_mask))

@@ -21,6 +21,7 @@ from pipeline.config import SceneConfig, SimulateConfig
 from pipeline.parallel import Launcher
 from pipeline.sim import kernels as K
 from pipeline.sim.seeding import EmitterSchedule, lattice_rest_sum, seed_fluid, wall_density_table
+from pipeline.sph import poly6_coefficient, spacing
 
 # Cells per kernel radius of the neighbour grid: 2 tests ~40% fewer candidates than 1.
 CELLS_PER_H = 2
@@ -48,10 +49,10 @@ class PBFSolver:
         self.radius = r
         self.h = params.kernel_radius_factor * r
         self.dt = 1.0 / (params.fps * params.substeps)
-        self.poly6_coef = 315.0 / (64.0 * math.pi * self.h**9)
+        self.poly6_coef = poly6_coefficient(self.h)
         self.spiky_coef = -45.0 / (math.pi * self.h**6)
         # Mass such that an interior particle of the initial lattice (spacing 2r) is at rest density.
-        self.mass = params.rest_density / lattice_rest_sum(2.0 * r, self.h)
+        self.mass = params.rest_density / lattice_rest_sum(spacing(r), self.h)
         dq = params.artificial_pressure_dq * self.h
         self.corr_w_dq = self.poly6_coef * (self.h**2 - dq**2) ** 3
         self.self_density = self.mass * self.poly6_coef * self.h**6

@@ -7,47 +7,41 @@ import math
 import numpy as np
 
 from pipeline.config import Emitter, SceneConfig
+from pipeline.sph import lattice_offsets, poly6, spacing
 
 
-def lattice_rest_sum(spacing: float, h: float) -> float:
+def lattice_rest_sum(step: float, h: float) -> float:
     """Sum of poly6 over an interior particle's neighbours on a cubic lattice (self included).
 
     Dividing the rest density by this gives the particle mass that makes the initial lattice sit
     exactly at rest density.
     """
-    k = int(math.ceil(h / spacing))
-    ax = np.arange(-k, k + 1) * spacing
-    gx, gy, gz = np.meshgrid(ax, ax, ax, indexing="ij")
-    r2 = gx**2 + gy**2 + gz**2
-    h2 = h * h
-    w = np.where(r2 < h2, (h2 - r2) ** 3, 0.0)
-    return float(w.sum() * 315.0 / (64.0 * math.pi * h**9))
+    r2 = np.sum(lattice_offsets(step, h) ** 2, axis=1)
+    return float(poly6(r2, h).sum())
 
 
-def wall_density_table(spacing: float, h: float, samples: int = 65) -> np.ndarray:
+def wall_density_table(step: float, h: float, samples: int = 65) -> np.ndarray:
     """Poly6 density per unit mass of fluid at rest behind a wall, and its derivative, vs distance.
 
     Row k is for a particle at distance d_k = k h / (samples - 1) from the wall plane; the virtual
     fluid is a lattice (spacing 2r) whose first layer sits r behind the plane, mirroring the
     particles resting at r in front of it, so a resting first layer sees full rest density.
     """
-    k = int(math.ceil(h / spacing)) + 1
-    lateral = np.arange(-k, k + 1) * spacing
-    layers = -0.5 * spacing - np.arange(0, k + 1) * spacing
+    k = int(math.ceil(h / step)) + 1
+    lateral = np.arange(-k, k + 1) * step
+    layers = -0.5 * step - np.arange(0, k + 1) * step
     gx, gy, gz = np.meshgrid(lateral, lateral, layers, indexing="ij")
     d = np.linspace(0.0, h, samples)
-    coef = 315.0 / (64.0 * math.pi * h**9)
     rho = np.empty(samples)
     for i, di in enumerate(d):
-        r2 = gx**2 + gy**2 + (di - gz) ** 2
-        rho[i] = coef * np.sum(np.where(r2 < h * h, (h * h - r2) ** 3, 0.0))
+        rho[i] = np.sum(poly6(gx**2 + gy**2 + (di - gz) ** 2, h))
     grad = np.gradient(rho, d)
     rho[-1], grad[-1] = 0.0, 0.0
     return np.stack([rho, grad], axis=1).astype(np.float32)
 
 
-def _lattice_in_box(lo, hi, spacing: float) -> np.ndarray:
-    axes = [np.arange(lo[a] + 0.5 * spacing, hi[a] - 0.25 * spacing, spacing) for a in range(3)]
+def _lattice_in_box(lo, hi, step: float) -> np.ndarray:
+    axes = [np.arange(lo[a] + 0.5 * step, hi[a] - 0.25 * step, step) for a in range(3)]
     g = np.meshgrid(*axes, indexing="ij")
     return np.stack([c.ravel() for c in g], axis=1)
 
@@ -63,7 +57,7 @@ def initial_particle_estimate(scene: SceneConfig, radius: float) -> float:
     for shape in scene.fluid:
         if shape.shape == "box":
             extent = np.maximum(np.asarray(shape.hi, float) - np.asarray(shape.lo, float), 0.0)
-            total += float(np.prod(extent / (2.0 * radius) + 1.0))
+            total += float(np.prod(extent / spacing(radius) + 1.0))
         else:
             total += float((shape.radius / radius + 1.0) ** 3)
     return total
@@ -81,17 +75,17 @@ def seed_fluid(scene: SceneConfig, radius: float, rng: np.random.Generator) -> t
         raise ValueError(f"simulate.particle_radius {radius:g} would fill the fluid of scene {scene.name!r} with about "
                          f"{estimate:.2g} particles (the limit is {MAX_INITIAL_PARTICLES:,}); use a radius of at "
                          f"least {radius * volume_share:.3g} in the scene's units")
-    spacing = 2.0 * radius
+    step = spacing(radius)
     dlo = np.asarray(scene.domain_lo, float) + radius
     dhi = np.asarray(scene.domain_hi, float) - radius
     xs, vs = [], []
     taken = np.zeros((0, 3))
     for shape in scene.fluid:
         if shape.shape == "box":
-            pts = _lattice_in_box(shape.lo, shape.hi, spacing)
+            pts = _lattice_in_box(shape.lo, shape.hi, step)
         else:
             c, R = np.asarray(shape.center, float), shape.radius
-            pts = _lattice_in_box(c - R, c + R, spacing)
+            pts = _lattice_in_box(c - R, c + R, step)
             pts = pts[np.linalg.norm(pts - c, axis=1) <= R]
         pts = pts[np.all((pts >= dlo) & (pts <= dhi), axis=1)]
         if len(taken) and len(pts):
@@ -99,7 +93,7 @@ def seed_fluid(scene: SceneConfig, radius: float, rng: np.random.Generator) -> t
             from scipy.spatial import cKDTree
 
             d, _ = cKDTree(taken).query(pts, k=1)
-            pts = pts[d > 0.75 * spacing]
+            pts = pts[d > 0.75 * step]
         xs.append(pts)
         vs.append(np.tile(np.asarray(shape.velocity, float), (len(pts), 1)))
         taken = np.concatenate([taken, pts]) if len(pts) else taken
@@ -110,10 +104,10 @@ def seed_fluid(scene: SceneConfig, radius: float, rng: np.random.Generator) -> t
     return x.astype(np.float32), np.concatenate(vs).astype(np.float32)
 
 
-def _disc(radius_nozzle: float, spacing: float) -> np.ndarray:
+def _disc(radius_nozzle: float, step: float) -> np.ndarray:
     """Lattice points of a disc in its own (u, v) plane."""
-    k = int(math.floor(radius_nozzle / spacing))
-    ax = np.arange(-k, k + 1) * spacing
+    k = int(math.floor(radius_nozzle / step))
+    ax = np.arange(-k, k + 1) * step
     u, v = np.meshgrid(ax, ax, indexing="ij")
     keep = u**2 + v**2 <= radius_nozzle**2 + 1e-12
     return np.stack([u[keep], v[keep]], axis=1)
@@ -142,9 +136,9 @@ class EmitterSchedule:
         self.items = []
         for e in emitters:
             d, u, v = _basis(e.direction)
-            disc = _disc(e.radius, 2.0 * radius)
+            disc = _disc(e.radius, spacing(radius))
             layer = np.asarray(e.position, float) + disc[:, :1] * u + disc[:, 1:] * v
-            self.items.append((e, d, layer, 2.0 * radius / e.speed))
+            self.items.append((e, d, layer, spacing(radius) / e.speed))
 
     def _layers_due(self, item, t0: float, t1: float) -> list[float]:
         """Emission times of the layers due in [t0, t1)."""

@@ -19,6 +19,7 @@ from skimage import measure
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
+from pipeline.sph import POLY6_NORM, lattice_offsets, particle_volume, spacing
 from pipeline.surface import kernels as K
 from pipeline.timing import Timings
 
@@ -42,15 +43,13 @@ class SurfaceMesh:
         return trimesh.Trimesh(self.vertices, self.faces, vertex_normals=self.normals, process=False)
 
 
-def full_neighbourhood_variance(spacing: float, support: float) -> float:
+def full_neighbourhood_variance(step: float, support: float) -> float:
     """Mean eigenvalue of the weighted covariance of an interior lattice neighbourhood.
 
     Dividing by it makes a full neighbourhood map to kernel scale 1, which is what Yu & Turk's
     k_s = 1400 achieves in their units; here it holds in any unit.
     """
-    k = int(math.ceil(support / spacing))
-    ax = np.arange(-k, k + 1) * spacing
-    p = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    p = lattice_offsets(step, support)
     d = np.linalg.norm(p, axis=1)
     keep = d < support
     w = 1.0 - (d[keep] / support) ** 3
@@ -88,7 +87,7 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     support = 2.0 * h
     x = wp.array(positions.astype(np.float32), dtype=wp.vec3, device=device)
     grid = _hash_grid(x, positions, support / ANISOTROPY_CELLS_PER_SUPPORT, device)
-    ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(2.0 * radius, support)
+    ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(spacing(radius), support)
     centres = wp.zeros(n, dtype=wp.vec3, device=device)
     g = wp.zeros(n, dtype=wp.mat33, device=device)
     extents = wp.zeros(n, dtype=float, device=device)
@@ -179,7 +178,7 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
     span = float((c.max(0) - c.min(0)).max() + 2 * extents.numpy().max())
     cell = max(cell, span / (p.max_grid_cells - 5))
     with timings("density"):
-        grid, origin = density_grid(centres, g, extents, (2.0 * radius) ** 3, cell, launch, device)
+        grid, origin = density_grid(centres, g, extents, particle_volume(radius), cell, launch, device)
     if grid.max() <= p.iso_level:
         return _empty()
     with timings("marching_cubes"):
@@ -235,7 +234,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     t_start = ss.splat_ellipsoids(supports, camera, normals=False).depth
     reach = float(e.max())
     grid = _hash_grid(centres, c, reach, device)
-    amplitude = (2.0 * radius) ** 3 * K.POLY6_NORM
+    amplitude = particle_volume(radius) * POLY6_NORM
     out_n = wp.zeros(w * h, dtype=wp.vec3, device=device)
     out_d = wp.zeros(w * h, dtype=float, device=device)
     out_t = wp.zeros(w * h, dtype=float, device=device)

@@ -9,9 +9,9 @@ phi(x) = sum_j V_j det(G_j) P(|G_j (x - c_j)|) splatted on a grid, P the normali
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from pipeline.sph import POLY6_NORM
 
-POLY6_NORM = 315.0 / (64.0 * 3.141592653589793)
+wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel

@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig, RenderConfig
+from pipeline.evaluate.metrics import refined_mask
 from pipeline.exr import stack
 from pipeline.model.data import input_channels, make_input
 from pipeline.model.inference import Refiner
@@ -27,6 +28,9 @@ from pipeline.views import raytraced_target_channels, screen_space_inputs, targe
 
 METHODS = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "mesh")
 ANISO_METHODS = ("aniso", "aniso_nrf")
+NAMES = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "aniso": "ellipsoids",
+         "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)", "mesh": "mesh (reference)"}
+"""How each method is called in reports, comparison titles and figures."""
 
 
 def method_maps(method: str, channels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -64,8 +68,8 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     names = input_channels(refiner.splat)
     fluid = channels[names.fluid] > 0
     n = refiner(make_input(channels, refiner.auxiliary, refiner.splat), fluid)
+    mask = refined_mask(n, fluid, threshold)
     length = np.linalg.norm(n, axis=-1)
-    mask = (length >= threshold) & fluid
     return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
 
 

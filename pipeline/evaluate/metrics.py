@@ -10,6 +10,13 @@ def normal_mask(normals: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     return np.linalg.norm(normals, axis=-1) >= threshold
 
 
+def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+    """The pixels a refined normal map shows as fluid: where the splat has fluid and the predicted
+    normal is at least ``threshold`` long (Choi et al. 3.3 drop shorter ones as noise). The one
+    rule for rendering, evaluation and the trainer's choice of its best checkpoint."""
+    return normal_mask(normals, threshold) & fluid
+
+
 def angular_errors(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Angles in degrees between unit-normalised ``pred`` and ``target`` at ``mask`` pixels."""
     a = pred[mask].astype(np.float64)

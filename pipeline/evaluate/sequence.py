@@ -1,0 +1,149 @@
+"""Every normal-map method of one held-out sequence against the reference surface.
+
+Per method: normal error (mean, median, share under 5 / 10 / 20 degrees), silhouette IoU, PSNR and
+SSIM of the shaded image against the shaded reference, temporal flicker and milliseconds per frame
+from particles to the normal map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from tqdm import tqdm
+
+from pipeline.camera import camera_for_frame
+from pipeline.config import Config, SceneConfig
+from pipeline.device import warp_device
+from pipeline.evaluate.metrics import angular_errors, iou, summarize_angles
+from pipeline.exr import read_exr, stack
+from pipeline.frames import frame_name, load_frame, spread
+from pipeline.methods import method_maps, normal_source, refine, shade_frame
+from pipeline.model.data import input_channels
+from pipeline.parallel import Launcher
+from pipeline.screen import ScreenSpace
+from pipeline.shading import Shader, tonemap
+from pipeline.shading.background import BackgroundRenderer
+from pipeline.timing import Timings
+
+TIMED_FRAMES = 3
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """One held-out sequence: a scene seen along one camera path, its dataset views and particles."""
+
+    scene: SceneConfig
+    camera: str
+    records: list[dict]       # the dataset manifest's records of this camera path, in frame order
+    dataset_dir: Path
+    sim_dir: Path
+    particle_radius: float
+
+
+def _maps(method: str, ch: dict, refiner, threshold: float):
+    """(normals, mask, depth) of a method from a dataset frame's channels."""
+    if method == "refined":
+        n, mask = refine(refiner, ch, threshold)
+        return n, mask, ch[input_channels(refiner.splat).blurred]
+    if method == "mesh":
+        return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
+    maps = method_maps(method, ch)
+    return maps["normals"], maps["mask"] > 0, maps["depth"]
+
+
+def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str, ...], device: str) -> dict:
+    """Per-method metrics of one held-out sequence, plus per-frame errors and examples for the figures."""
+    rp = config.render
+    records = spread(seq.records, config.evaluate.frames_per_sequence)
+    width, height = config.dataset.width, config.dataset.height
+    shader = Shader(warp_device(device))
+    background = BackgroundRenderer(seq.scene, rp, width, height)
+    scores = {k: {m: [] for m in methods} for k in ("errors", "per_frame", "iou", "psnr", "ssim")}
+    examples = []
+    try:
+        for r in tqdm(records, desc=f"evaluate {seq.scene.name}/{seq.camera}", unit="frame", leave=False):
+            ch = read_exr(seq.dataset_dir / r["file"])
+            cam = camera_for_frame(seq.scene.cameras, seq.camera, r["index"], len(seq.records), width, height)
+            bg, bg_depth = background.render(cam)
+            bg = shader.fill_sky(bg, bg_depth, cam, rp)
+            target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
+            maps = {m: _maps(m, ch, refiner, rp.normal_threshold) for m in (*methods, "mesh")}
+            shaded = {}
+            for m, (n, mask, depth) in maps.items():
+                src = {"normals": n.astype(np.float32), "depth": np.where(mask, depth, 0).astype(np.float32),
+                       "mask": mask.astype(np.float32), "thickness": ch["thickness"]}
+                shaded[m] = tonemap(shade_frame(src, bg, bg_depth, cam, rp, shader).beauty).astype(np.float32) / 255
+                if m == "mesh":
+                    continue
+                e = angular_errors(n, target, mask & t_mask)
+                scores["errors"][m].append(e)
+                scores["per_frame"][m].append(float(e.mean()) if e.size else float("nan"))
+                scores["iou"][m].append(iou(mask, t_mask))
+            if len(examples) < 3 and t_mask.mean() > 0.02 and r["index"] % 4 == 0:
+                examples.append({"scene": seq.scene.name, "frame": r["frame"], "target": target,
+                                 **{m: maps[m][0] for m in methods}})
+            for m in methods:
+                scores["psnr"][m].append(peak_signal_noise_ratio(shaded["mesh"], shaded[m], data_range=1.0))
+                scores["ssim"][m].append(structural_similarity(shaded["mesh"], shaded[m], channel_axis=-1,
+                                                               data_range=1.0))
+    finally:
+        background.close()
+        shader.close()
+    timings = time_methods(seq, config, (*methods, "mesh"), refiner, device)
+    result = {m: _summary(m, scores, timings) for m in methods}
+    result["mesh"] = {"ms_per_frame": timings["mesh"]}
+    return {"scene": seq.scene.name, "camera": seq.camera, "frames": len(records), "methods": result,
+            "examples": examples}
+
+
+def _summary(m: str, scores: dict, timings: dict) -> dict:
+    per_frame = scores["per_frame"][m]
+    steps = np.abs(np.diff(np.array(per_frame)))
+    steps = steps[np.isfinite(steps)]  # frames where a method shows no fluid have no error
+    errors = scores["errors"][m]
+    return {**summarize_angles(np.concatenate(errors) if errors else np.zeros(0)),
+            "iou": float(np.mean(scores["iou"][m])), "psnr": float(np.mean(scores["psnr"][m])),
+            "ssim": float(np.mean(scores["ssim"][m])), "flicker_deg": float(steps.mean()) if steps.size else 0.0,
+            "ms_per_frame": timings.get(m, float("nan")), "per_frame_mean_deg": per_frame}
+
+
+def time_methods(seq: HeldOut, config: Config, methods, refiner, device: str) -> dict[str, float]:
+    """Wall milliseconds per frame of each method from particles to its normal map (first frames)."""
+    wdev = warp_device(device)
+    ss, launch = ScreenSpace(wdev), Launcher(wdev)
+    p = config.dataset
+    frames = [r["frame"] for r in seq.records[:TIMED_FRAMES]]
+    out = {}
+    try:
+        for m in methods:
+            t = Timings()
+            for i, frame in enumerate(frames):
+                x, _ = load_frame(seq.sim_dir / frame_name(frame))
+                cam = camera_for_frame(seq.scene.cameras, seq.camera, i, len(seq.records), p.width, p.height)
+                with t("total"):
+                    normal_source(m, x, seq.particle_radius, cam, p, ss, launch, refiner,
+                                  config.render.normal_threshold)
+            out[m] = round(t.mean_ms("total"), 1)
+    finally:
+        ss.close()
+        launch.close()
+    return out
+
+
+def aggregate(results: list[dict], methods) -> dict:
+    """Pixel-weighted means over all sequences, per method."""
+    table = {}
+    for m in methods:
+        rows = [r["methods"][m] for r in results]
+        w = np.array([row["pixels"] for row in rows], float)
+        w = w / max(w.sum(), 1)
+        table[m] = {k: float(np.nansum([row[k] * wi for row, wi in zip(rows, w, strict=True)]))
+                    for k in ("mean_deg", "under_5", "under_10", "under_20")}
+        table[m]["median_deg"] = float(np.nanmedian([row["median_deg"] for row in rows]))
+        for k in ("iou", "psnr", "ssim", "flicker_deg", "ms_per_frame"):
+            table[m][k] = float(np.nanmean([row[k] for row in rows]))
+    table["mesh"] = {"ms_per_frame": float(np.nanmean([r["methods"]["mesh"]["ms_per_frame"] for r in results]))}
+    return table

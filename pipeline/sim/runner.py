@@ -1,0 +1,98 @@
+"""A scene's particle sequence into a cache folder: a PBF simulation, or an imported file sequence.
+
+Either way the folder gets ``frame_0001.npz ...`` (positions, velocities) and ``sequence.json``;
+both resume after the last whole frame when a run was killed.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from pipeline.config import SceneConfig, SimulateConfig
+from pipeline.frames import SequenceInfo, completed_frames, frame_name, load_frame, save_frame, write_sequence_info
+from pipeline.particles import read_particles
+from pipeline.sph import IMPORT_PADDING_RADII, WATER_DENSITY
+from pipeline.timing import Timings
+
+log = logging.getLogger("deep_ssfr")
+
+
+class SimulationFailed(RuntimeError):
+    """The solver blew up; the message says which scene and what to change."""
+
+
+def source_files(scene: SceneConfig) -> list[str]:
+    """The sorted frame files of an imported scene."""
+    files = sorted(glob.glob(scene.source.pattern))
+    if not files:
+        raise FileNotFoundError(f"scene {scene.name}: no files match {scene.source.pattern}")
+    return files
+
+
+def import_sequence(folder: Path, scene: SceneConfig) -> dict:
+    """Copy an imported scene's frames into the folder; returns the manifest's extra fields."""
+    folder, src = Path(folder), scene.source
+    files = source_files(scene)
+    timings, n_max = Timings(), 0
+    for i, f in enumerate(tqdm(files, desc=f"import {scene.name}", unit="frame"), start=1):
+        target = folder / frame_name(i)
+        if target.exists():
+            continue
+        with timings("read"):
+            frame = read_particles(f)
+        save_frame(target, frame.positions, frame.velocities)
+        n_max = max(n_max, len(frame.positions))
+    first = read_particles(files[0]).positions
+    pad = IMPORT_PADDING_RADII * src.particle_radius
+    write_sequence_info(folder, SequenceInfo(scene.name, len(files), src.particle_radius, WATER_DENSITY, src.fps,
+                                             tuple(float(v - pad) for v in first.min(0)),
+                                             tuple(float(v + pad) for v in first.max(0)), src.pattern))
+    log.info("import %s: %d frames from %s", scene.name, len(files), src.pattern)
+    return {"files": [frame_name(i) for i in range(1, len(files) + 1)], "timings": timings.as_dict(),
+            "particles_max": n_max}
+
+
+def simulate_sequence(folder: Path, scene: SceneConfig, params: SimulateConfig, device: str, seed: int) -> dict:
+    """Run PBF for ``params.frames`` frames (resuming after the last whole one on disk); returns the
+    manifest's extra fields. ``device`` is a Warp device."""
+    from pipeline.sim.pbf import PBFSolver, SimulationError
+
+    folder = Path(folder)
+    write_sequence_info(folder, SequenceInfo(scene.name, params.frames, params.particle_radius, params.rest_density,
+                                             params.fps, scene.domain_lo, scene.domain_hi, "pbf"))
+    solver = PBFSolver(scene, params, device, seed=seed)
+    done = completed_frames(folder, params.frames)
+    if done:
+        x, v = load_frame(folder / frame_name(done))
+        solver.set_state(x, v, done * params.substeps)
+        log.info("simulate %s: resuming after frame %d", scene.name, done)
+    log.info("simulate %s: %d particles (capacity %d), %d frames x %d substeps x %d iterations on %s",
+             scene.name, solver.n, solver.capacity, params.frames, params.substeps, params.iterations, device)
+    timings = Timings()
+    start, steps0, particle_steps = time.perf_counter(), solver.step_index, 0
+    bar = tqdm(range(done + 1, params.frames + 1), desc=f"simulate {scene.name}", unit="frame",
+               initial=done, total=params.frames)
+    try:
+        for frame in bar:
+            with timings("solve"):
+                stats = solver.advance_frame(frame)
+            particle_steps += stats.particles * params.substeps
+            with timings("write"):
+                save_frame(folder / frame_name(frame), *solver.state())
+            bar.set_postfix(particles=stats.particles, rho_max=f"{stats.max_density_ratio:.2f}")
+    except SimulationError as exc:
+        raise SimulationFailed(f"simulate {scene.name}: {exc}; lower the time step (substeps) or "
+                               "artificial_pressure_k") from None
+    finally:
+        solver.close()
+    wall = max(time.perf_counter() - start, 1e-9)
+    log.info("simulate %s: %d frames, %d particles, %.1f s wall, %.1f steps/s, %.3g particle-steps/s", scene.name,
+             params.frames - done, solver.n, wall, (solver.step_index - steps0) / wall, particle_steps / wall)
+    return {"files": [frame_name(i) for i in range(1, params.frames + 1)], "timings": timings.as_dict(),
+            "particles": solver.n, "wall_seconds": round(wall, 3),
+            "particle_steps_per_second": round(particle_steps / wall, 1)}

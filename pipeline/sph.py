@@ -1,0 +1,49 @@
+"""SPH facts every part of the pipeline shares: the poly6 kernel, particle spacing and volume.
+
+Particles of radius r start on a cubic lattice of spacing 2r, so each stands for a volume (2r)^3;
+the poly6 kernel W(d, h) = 315 / (64 pi h^9) (h^2 - d^2)^3 (Mueller et al. 2003) weighs
+neighbours in the simulator, in the seeding tables and in the reconstructed surface's density.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+POLY6_NORM = 315.0 / (64.0 * math.pi)
+"""Normalisation of the poly6 profile (1 - q^2)^3 over the unit ball (q = d / h)."""
+
+WATER_DENSITY = 1000.0
+"""Rest density of water (kg/m^3), assumed for imported sequences."""
+
+IMPORT_PADDING_RADII = 4.0
+"""Margin around an imported sequence's first frame, in particle radii, that forms its domain."""
+
+
+def poly6_coefficient(h: float) -> float:
+    """The factor 315 / (64 pi h^9) of the poly6 kernel with support ``h``."""
+    return POLY6_NORM / h**9
+
+
+def poly6(r2: np.ndarray, h: float) -> np.ndarray:
+    """Poly6 kernel values at squared distances ``r2`` (0 beyond the support ``h``)."""
+    h2 = h * h
+    return poly6_coefficient(h) * np.where(r2 < h2, (h2 - r2) ** 3, 0.0)
+
+
+def spacing(radius: float) -> float:
+    """Distance between neighbouring particles at rest: the lattice spacing 2r."""
+    return 2.0 * radius
+
+
+def particle_volume(radius: float) -> float:
+    """Volume one particle stands for at rest: (2r)^3."""
+    return spacing(radius) ** 3
+
+
+def lattice_offsets(spacing_: float, reach: float) -> np.ndarray:
+    """Offsets (K x 3) of a cubic lattice's points within a cube of half side ``reach`` (rounded up)."""
+    k = int(math.ceil(reach / spacing_))
+    ax = np.arange(-k, k + 1) * spacing_
+    return np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
