@@ -116,6 +116,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
         yield tmp
         os.replace(tmp, target)
         _journal(target)
+        log.debug("wrote %s", target)  # one event per finished file (tests kill runs on them)
     except OSError as exc:
         if exc.filename is None:  # a writer that does not say which file: this one
             raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from exc

@@ -19,13 +19,14 @@ def choose_device(requested: str = "auto") -> str:
         raise ValueError(f"{ENV_VAR} must be auto, cpu or cuda, got {choice!r}")
     if choice == "cpu":
         return "cpu"
-    cuda_ok = _cuda_available()
+    cuda_ok = cuda_available()
     if choice == "cuda" and not cuda_ok:
         raise RuntimeError("device 'cuda' requested but Warp and torch do not both see a CUDA GPU")
     return "cuda" if cuda_ok else "cpu"
 
 
-def _cuda_available() -> bool:
+def cuda_available() -> bool:
+    """Whether both Warp and torch can use a CUDA GPU."""
     try:
         import torch
         import warp as wp

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import fnmatch
 import os
+import signal
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -14,7 +17,38 @@ if not PARTICLES.exists():  # CI clones sit elsewhere; the frames also ship in t
     PARTICLES = ROOT / "tests" / "data"
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-os.environ.setdefault("DEEP_SSFR_DEVICE", "cpu")
+os.environ.setdefault("DEEP_SSFR_DEVICE", "cpu")  # every test on the CPU, except those marked cuda
+
+
+@pytest.fixture(autouse=True)
+def _cuda_marked_tests_use_the_gpu(request, monkeypatch):
+    """``@pytest.mark.cuda`` tests run the stages on the GPU, and skip cleanly without one."""
+    if request.node.get_closest_marker("cuda") is None:
+        return
+    from pipeline.device import cuda_available
+
+    if not cuda_available():
+        pytest.skip("needs a CUDA GPU that Warp and torch both see")
+    monkeypatch.setenv("DEEP_SSFR_DEVICE", "cuda")
+
+
+def kill_after_writes(cmd: list[str], pattern: str, count: int = 1, env: dict | None = None) -> int:
+    """Run a stage in a subprocess and SIGKILL it right after its ``count``-th finished file whose
+    path matches ``pattern`` (the cache logs each rename at DEBUG level: an event, not a poll).
+    Returns how many matching files it had finished (fewer when it ended first)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {}), "DEEP_SSFR_LOG": "DEBUG"}
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seen = 0
+    for line in proc.stderr:
+        _, marker, path = line.strip().partition(" wrote ")
+        if marker and fnmatch.fnmatch(path, pattern):
+            seen += 1
+            if seen >= count:
+                proc.send_signal(signal.SIGKILL)
+                break
+    proc.wait()
+    proc.stderr.close()
+    return seen
 
 
 def write_config(folder: Path, body: dict, scenes: dict[str, dict] | None = None) -> Path:

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +15,7 @@ from pipeline.config import load
 from pipeline.frames import load_frame
 from stages import simulate
 from stages.common import Run, stage_main
-from tests.conftest import ROOT
+from tests.conftest import ROOT, kill_after_writes
 
 
 def _run(config, *extra):
@@ -103,15 +101,8 @@ def test_sigkill_half_way_then_resume_equals_clean_run(tiny_dam, tmp_path):
     tiny_dam.write_text(yaml.safe_dump(body))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     cmd = [sys.executable, "-m", "stages.simulate", "--config", str(tiny_dam)]
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    assert kill_after_writes(cmd, "*/frame_0015.npz") == 1
     data = tiny_dam.parent / "data" / "simulate"
-    deadline = time.time() + 120
-    while time.time() < deadline:
-        if data.exists() and any(data.glob("*/frame_0015.npz")):
-            break
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
     (entry,) = list(data.iterdir())
     done = sorted(entry.glob("frame_*.npz"))
     assert 15 <= len(done) < 60 and not (entry / "manifest.json").exists()

@@ -10,7 +10,7 @@ import yaml
 
 from stages import render, simulate
 from stages.common import stage_main
-from tests.conftest import ROOT
+from tests.conftest import ROOT, kill_after_writes
 
 
 def _enospc(*args, **kwargs):
@@ -308,10 +308,8 @@ def test_two_stages_killed_at_random_points_resume_to_a_clean_run(tmp_path):
     equal those of a clean run, and no temporary file is left."""
     import os
     import random
-    import signal
     import subprocess
     import sys
-    import time
 
     from pipeline.exr import read_exr
     from tests.conftest import CAMERAS
@@ -337,15 +335,8 @@ def test_two_stages_killed_at_random_points_resume_to_a_clean_run(tmp_path):
         assert subprocess.run(cmd + [str(clean)], cwd=ROOT, env=env, capture_output=True).returncode == 0
         total = len(list((clean.parent / "data" / stage).glob(f"*/{pattern}")))
         for _ in range(2):
-            proc = subprocess.Popen(cmd + [str(killed)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.DEVNULL)
-            target, deadline = rng.randint(1, total - 1), time.time() + 120
-            while time.time() < deadline and proc.poll() is None:
-                if len(list((killed.parent / "data" / stage).glob(f"*/{pattern}"))) >= target:
-                    break
-                time.sleep(0.005)
-            proc.send_signal(signal.SIGKILL)
-            proc.wait()
+            left = total - len(list((killed.parent / "data" / stage).glob(f"*/{pattern}")))
+            kill_after_writes(cmd + [str(killed)], f"*/{pattern}", rng.randint(1, max(left - 1, 1)))
             entries = list((killed.parent / "data" / stage).iterdir())
             interrupted += bool(entries) and not (entries[0] / "manifest.json").exists()
         assert subprocess.run(cmd + [str(killed)], cwd=ROOT, env=env, capture_output=True).returncode == 0
