@@ -1,21 +1,24 @@
-"""Typed configuration: YAML (``safe_load``) into frozen dataclasses, one per stage.
+"""Typed configuration: YAML (``safe_load``) into frozen, documented dataclasses, one per stage.
 
-Every field carries its unit in the docstring below it. Loading rejects unknown keys, wrong types
-and out-of-range values with a :class:`ConfigError` naming the file and the key path, so a typo
-never silently falls back to a default. Relative paths inside a file resolve against that file.
+Every field carries its unit in the docstring below it and its bounds in its ``Field``; pydantic
+validates a loaded file strictly (no "5" for 5, no 1 for true, no NaN or infinity, no unknown
+keys) and every problem becomes a :class:`ConfigError` naming the file and the key path, so a
+typo never silently falls back to a default. Relative paths inside a file resolve against that
+file.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-import types
+import functools
+import json
 import typing
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
+from pydantic import ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic.dataclasses import dataclass
 
 
 class ConfigError(ValueError):
@@ -27,12 +30,8 @@ class ConfigError(ValueError):
         super().__init__(f"{where}: {message}")
 
 
-def _f(default: Any = dataclasses.MISSING, *, gt=None, ge=None, le=None, lt=None, factory=None):
-    """A dataclass field with optional numeric bounds checked at load time."""
-    meta = {k: v for k, v in dict(gt=gt, ge=ge, le=le, lt=lt).items() if v is not None}
-    if factory is not None:
-        return field(default_factory=factory, metadata=meta)
-    return field(default=default, metadata=meta)
+_RULES = ConfigDict(extra="forbid", allow_inf_nan=False)
+"""Every config dataclass: unknown keys and non-finite numbers are errors (files load strictly)."""
 
 
 Vec3 = tuple[float, float, float]
@@ -42,7 +41,7 @@ Vec3 = tuple[float, float, float]
 # Scenes (configs/scenes/<name>.yaml)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class FluidShape:
     """An initial block of fluid filled with particles on a cubic lattice."""
 
@@ -54,13 +53,13 @@ class FluidShape:
     """Box: maximum corner (m)."""
     center: Vec3 = (0.0, 0.0, 0.0)
     """Sphere: centre (m)."""
-    radius: float = _f(0.0, ge=0.0)
+    radius: float = Field(0.0, ge=0.0)
     """Sphere: radius (m)."""
     velocity: Vec3 = (0.0, 0.0, 0.0)
     """Initial velocity (m/s)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class Obstacle:
     """A static solid the fluid flows around."""
 
@@ -72,11 +71,11 @@ class Obstacle:
     """Box: maximum corner (m)."""
     center: Vec3 = (0.0, 0.0, 0.0)
     """Sphere: centre (m)."""
-    radius: float = _f(0.0, ge=0.0)
+    radius: float = Field(0.0, ge=0.0)
     """Sphere: radius (m)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class Emitter:
     """A round nozzle injecting layers of particles with a velocity over a time window."""
 
@@ -84,17 +83,17 @@ class Emitter:
     """Centre of the nozzle opening (m)."""
     direction: Vec3
     """Direction of the jet (normalised on use)."""
-    radius: float = _f(0.05, gt=0.0)
+    radius: float = Field(0.05, gt=0.0)
     """Nozzle radius (m)."""
-    speed: float = _f(1.5, gt=0.0)
+    speed: float = Field(1.5, gt=0.0)
     """Jet speed (m/s)."""
-    start: float = _f(0.0, ge=0.0)
+    start: float = Field(0.0, ge=0.0)
     """Time the nozzle opens (s)."""
-    end: float = _f(1.0, ge=0.0)
+    end: float = Field(1.0, ge=0.0)
     """Time the nozzle closes (s)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class StaticCamera:
     """A camera that stays put."""
 
@@ -102,17 +101,17 @@ class StaticCamera:
     """Camera position (m)."""
     target: Vec3
     """Point looked at (m)."""
-    fov_deg: float = _f(40.0, gt=0.0, lt=180.0)
+    fov_deg: float = Field(40.0, gt=0.0, lt=180.0)
     """Vertical field of view (degrees)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class OrbitCamera:
     """A camera circling a vertical axis through ``target`` over the sequence."""
 
     target: Vec3
     """Point looked at and orbit centre (m)."""
-    distance: float = _f(2.5, gt=0.0)
+    distance: float = Field(2.5, gt=0.0)
     """Horizontal distance from the axis (m)."""
     height: float = 1.0
     """Height of the eye above the target (m)."""
@@ -120,11 +119,11 @@ class OrbitCamera:
     """Azimuth of the first frame, from +Z towards +X (degrees)."""
     sweep_deg: float = 90.0
     """Azimuth travelled over the whole sequence (degrees)."""
-    fov_deg: float = _f(40.0, gt=0.0, lt=180.0)
+    fov_deg: float = Field(40.0, gt=0.0, lt=180.0)
     """Vertical field of view (degrees)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class Cameras:
     """The two camera paths every scene defines (the paper renders both)."""
 
@@ -134,19 +133,19 @@ class Cameras:
     """The moving view."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class ParticleSource:
     """An external particle sequence used instead of a simulation."""
 
     pattern: str
     """Glob of frame files (VTK, BGEO, PLY or XYZ), sorted by name; relative to the scene file."""
-    particle_radius: float = _f(gt=0.0)
+    particle_radius: float = Field(gt=0.0)
     """Particle radius of the sequence (its units)."""
-    fps: float = _f(30.0, gt=0.0)
+    fps: float = Field(30.0, gt=0.0)
     """Frame rate of the sequence (frames/s)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class SceneConfig:
     """One scene: a simulation set-up or an imported sequence, plus its cameras."""
 
@@ -172,112 +171,112 @@ class SceneConfig:
 # Stages
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class SimulateConfig:
     """Position Based Fluids (Macklin & Mueller 2013) parameters."""
 
-    particle_radius: float = _f(0.0125, gt=0.0)
+    particle_radius: float = Field(0.0125, gt=0.0)
     """Particle radius r (m); particles start on a lattice of spacing 2r."""
-    rest_density: float = _f(1000.0, gt=0.0)
+    rest_density: float = Field(1000.0, gt=0.0)
     """Rest density rho_0 (kg/m^3)."""
-    kernel_radius_factor: float = _f(4.0, gt=1.0)
+    kernel_radius_factor: float = Field(4.0, gt=1.0)
     """SPH support h as a multiple of r."""
-    frames: int = _f(100, ge=1)
+    frames: int = Field(100, ge=1)
     """Frames to simulate."""
-    fps: float = _f(30.0, gt=0.0)
+    fps: float = Field(30.0, gt=0.0)
     """Output frame rate (frames/s)."""
-    substeps: int = _f(4, ge=1)
+    substeps: int = Field(4, ge=1)
     """Solver steps per frame (time step = 1 / (fps * substeps))."""
-    iterations: int = _f(4, ge=1)
+    iterations: int = Field(4, ge=1)
     """Density-constraint iterations per step."""
     gravity: Vec3 = (0.0, -9.81, 0.0)
     """Gravity (m/s^2)."""
-    relaxation: float = _f(100.0, gt=0.0)
+    relaxation: float = Field(100.0, gt=0.0)
     """Constraint-force-mixing epsilon in lambda's denominator (1/m^2 scale, as in the paper)."""
-    artificial_pressure_k: float = _f(1e-5, ge=0.0)
+    artificial_pressure_k: float = Field(1e-5, ge=0.0)
     """Tensile-instability correction k (m^2, the scale of lambda; the paper's 0.1 explodes here,
     1e-4 blew up a dam break at frame 26, 1e-5 and 3e-5 stayed stable)."""
-    artificial_pressure_n: int = _f(4, ge=1)
+    artificial_pressure_n: int = Field(4, ge=1)
     """Exponent n of the artificial pressure."""
-    artificial_pressure_dq: float = _f(0.2, gt=0.0, lt=1.0)
+    artificial_pressure_dq: float = Field(0.2, gt=0.0, lt=1.0)
     """Reference distance dq as a fraction of h."""
-    xsph_viscosity: float = _f(0.01, ge=0.0, le=1.0)
+    xsph_viscosity: float = Field(0.01, ge=0.0, le=1.0)
     """XSPH velocity smoothing c (dimensionless)."""
-    vorticity_epsilon: float = _f(0.005, ge=0.0)
+    vorticity_epsilon: float = Field(0.005, ge=0.0)
     """Vorticity confinement strength epsilon (m/s): acceleration = epsilon (N x omega)."""
-    max_speed: float = _f(50.0, gt=0.0)
+    max_speed: float = Field(50.0, gt=0.0)
     """Speed above which the run is declared blown up (m/s)."""
-    max_neighbours: int = _f(64, ge=8)
+    max_neighbours: int = Field(64, ge=8)
     """Capacity of a particle's half neighbour list: the neighbours after it in sorted order, about
     half of all its neighbours (a full neighbourhood at rest density holds about 30)."""
-    threads: int = _f(0, ge=0)
+    threads: int = Field(0, ge=0)
     """CPU threads for chunked kernel launches (0: one per core)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class DatasetConfig:
     """Screen-space inputs and mesh targets (stage 2)."""
 
-    width: int = _f(256, ge=8)
+    width: int = Field(256, ge=8)
     """Image width (px)."""
-    height: int = _f(256, ge=8)
+    height: int = Field(256, ge=8)
     """Image height (px)."""
-    frame_stride: int = _f(2, ge=1)
+    frame_stride: int = Field(2, ge=1)
     """Use every n-th simulated frame."""
-    max_frames: int = _f(0, ge=0)
+    max_frames: int = Field(0, ge=0)
     """Use at most this many frames per scene (0: all)."""
     filter_mode: Literal["fast", "exact"] = "fast"
     """'fast': the bilateral filter as two separable passes (cost linear in its radius) and
     narrow-range passes with at most ``nrf_max_taps`` taps a side (cost independent of the
     projected particle size); 'exact': the brute-force 2D bilateral window and narrow-range passes
     that read every pixel of their radius (the filters before 2026-11, slow at high resolution)."""
-    nrf_max_taps: int = _f(16, ge=1)
+    nrf_max_taps: int = Field(16, ge=1)
     """'fast' mode: most taps on each side of a narrow-range pass; wider kernels sample every k-th
     pixel (the 2D clean-up pass removes the pixel-scale noise this leaves)."""
-    bilateral_sigma_px_scale: float = _f(2.0, gt=0.0)
+    bilateral_sigma_px_scale: float = Field(2.0, gt=0.0)
     """Bilateral spatial sigma as a multiple of the projected particle radius (px / px)."""
-    bilateral_range_radii: float = _f(6.0, gt=0.0)
+    bilateral_range_radii: float = Field(6.0, gt=0.0)
     """Bilateral range sigma in particle radii (depth units / r)."""
-    bilateral_max_radius_px: int = _f(24, ge=1)
+    bilateral_max_radius_px: int = Field(24, ge=1)
     """Cap on the bilateral kernel radius (px)."""
-    gaussian_sigma_px: float = _f(3.0, gt=0.0)
+    gaussian_sigma_px: float = Field(3.0, gt=0.0)
     """Sigma of the naive fixed-size Gaussian depth blur, the weakest baseline (px)."""
-    nrf_delta_radii: float = _f(10.5, gt=0.0)
+    nrf_delta_radii: float = Field(10.5, gt=0.0)
     """Narrow-range delta in particle radii (Truong's reference value)."""
-    nrf_mu_radii: float = _f(1.0, gt=0.0)
+    nrf_mu_radii: float = Field(1.0, gt=0.0)
     """Narrow-range mu in particle radii."""
-    nrf_radius_scale: float = _f(4.0, gt=0.0)
+    nrf_radius_scale: float = Field(4.0, gt=0.0)
     """Narrow-range kernel radius as a multiple of the projected particle radius (px / px)."""
-    nrf_max_radius_px: int = _f(100, ge=1)
+    nrf_max_radius_px: int = Field(100, ge=1)
     """Cap on the narrow-range kernel radius (px)."""
-    nrf_iterations: int = _f(3, ge=1)
+    nrf_iterations: int = Field(3, ge=1)
     """Alternating separable passes of the narrow-range filter."""
-    nrf_cleanup_radius_px: int = _f(4, ge=0)
+    nrf_cleanup_radius_px: int = Field(4, ge=0)
     """Radius of the final 2D clean-up pass (px)."""
-    aniso_smoothing: float = _f(0.9, ge=0.0, le=1.0)
+    aniso_smoothing: float = Field(0.9, ge=0.0, le=1.0)
     """Laplacian smoothing lambda of the particle centres (Yu & Turk)."""
-    aniso_kr: float = _f(4.0, ge=1.0)
+    aniso_kr: float = Field(4.0, ge=1.0)
     """Largest-to-smallest eigenvalue ratio cap k_r."""
-    aniso_ks: float = _f(1400.0, gt=0.0)
+    aniso_ks: float = Field(1400.0, gt=0.0)
     """Eigenvalue scale k_s."""
-    aniso_kn: float = _f(0.5, gt=0.0)
+    aniso_kn: float = Field(0.5, gt=0.0)
     """Isotropic kernel scale for isolated particles k_n."""
-    aniso_neps: int = _f(25, ge=1)
+    aniso_neps: int = Field(25, ge=1)
     """Neighbour count below which a particle stays a sphere (N_eps)."""
-    aniso_kernel_radius: float = _f(5.0, gt=0.0)
+    aniso_kernel_radius: float = Field(5.0, gt=0.0)
     """Density kernel radius h as a multiple of r; neighbours for the covariance lie within 2h."""
-    iso_level: float = _f(0.5, gt=0.0)
+    iso_level: float = Field(0.5, gt=0.0)
     """Iso value of the normalised density (1 is a particle's rest density)."""
-    grid_cells_per_radius: float = _f(1.5, gt=0.0)
+    grid_cells_per_radius: float = Field(1.5, gt=0.0)
     """Density grid resolution (cells per particle radius)."""
-    max_grid_cells: int = _f(320, ge=16)
+    max_grid_cells: int = Field(320, ge=16)
     """Cap on the grid size per axis (cells); the paper used about 270."""
     target: Literal["mesh", "raytrace"] = "mesh"
     """The reference surface: 'mesh' (marching cubes of the density on a grid, ray-cast) or
     'raytrace' (each pixel's ray marched through the density to the iso-level, no grid)."""
-    raytrace_step_radii: float = _f(0.5, gt=0.0)
+    raytrace_step_radii: float = Field(0.5, gt=0.0)
     """'raytrace': march step along the ray, in particle radii (a crossing is then bisected)."""
-    raytrace_bisections: int = _f(10, ge=0)
+    raytrace_bisections: int = Field(10, ge=0)
     """'raytrace': bisection steps that refine each crossing (each halves the depth error)."""
     keep_meshes: bool = False
     """Also write the target meshes (PLY) for inspection."""
@@ -285,33 +284,33 @@ class DatasetConfig:
     """Camera path whose frames form each scene's validation split ('none': all train)."""
     holdout_scenes: tuple[str, ...] = ()
     """Scenes kept entirely out of training (their frames are all validation)."""
-    workers: int = _f(0, ge=0)
+    workers: int = Field(0, ge=0)
     """Parallel frame workers (0: one per core)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class TrainConfig:
     """cGAN refiner of Choi et al. 2021 (stage 3)."""
 
-    epochs: int = _f(20, ge=1)
+    epochs: int = Field(20, ge=1)
     """Training epochs (the paper: 100)."""
-    batch_size: int = _f(8, ge=1)
+    batch_size: int = Field(8, ge=1)
     """Images per batch."""
-    crop: int = _f(128, ge=16)
+    crop: int = Field(128, ge=16)
     """Random crop side (px; a multiple of the generator stride)."""
-    crops_per_frame: int = _f(1, ge=1)
+    crops_per_frame: int = Field(1, ge=1)
     """Random crops drawn from each training frame per epoch."""
-    lr: float = _f(2e-4, gt=0.0)
+    lr: float = Field(2e-4, gt=0.0)
     """Initial Adam learning rate."""
-    beta1: float = _f(0.5, ge=0.0, lt=1.0)
+    beta1: float = Field(0.5, ge=0.0, lt=1.0)
     """Adam beta1."""
-    lr_decay: float = _f(0.95, gt=0.0, le=1.0)
+    lr_decay: float = Field(0.95, gt=0.0, le=1.0)
     """Learning-rate factor applied after each epoch."""
-    lambda_content: float = _f(100.0, ge=0.0)
+    lambda_content: float = Field(100.0, ge=0.0)
     """Weight lambda_C of the content loss."""
-    lambda_normal: float = _f(10.0, ge=0.0)
+    lambda_normal: float = Field(10.0, ge=0.0)
     """Weight lambda_N of the normal-constraint loss (0 disables it)."""
-    lambda_adversarial: float = _f(1.0, ge=0.0)
+    lambda_adversarial: float = Field(1.0, ge=0.0)
     """Weight of the adversarial term."""
     content_loss: Literal["l1", "l2"] = "l1"
     """Content loss norm (the paper prefers L1)."""
@@ -324,31 +323,31 @@ class TrainConfig:
     against 10.99 for spheres (configs/ablations/*_input.yaml)."""
     train_scenes: tuple[str, ...] = ()
     """Scenes to train on (empty: every configured scene not held out)."""
-    gen_base_channels: int = _f(24, ge=4)
+    gen_base_channels: int = Field(24, ge=4)
     """Generator channels at full resolution."""
-    gen_downsamples: int = _f(2, ge=0, le=5)
+    gen_downsamples: int = Field(2, ge=0, le=5)
     """Stride-2 stages in the generator (its stride is 2^this)."""
-    gen_res_blocks: int = _f(4, ge=0)
+    gen_res_blocks: int = Field(4, ge=0)
     """Residual blocks at the bottleneck."""
-    disc_base_channels: int = _f(16, ge=4)
+    disc_base_channels: int = Field(16, ge=4)
     """Discriminator channels of its first convolution."""
-    disc_layers: int = _f(4, ge=1, le=7)
+    disc_layers: int = Field(4, ge=1, le=7)
     """Stride-2 convolutions in the discriminator before its fully connected layer."""
-    val_frames: int = _f(16, ge=1)
+    val_frames: int = Field(16, ge=1)
     """Validation frames evaluated each epoch (spread over the held-out split)."""
     mixed_precision: bool = True
     """Use autocast on CUDA (ignored on the CPU)."""
-    threads: int = _f(0, ge=0)
+    threads: int = Field(0, ge=0)
     """torch CPU threads (0: one per core)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class RenderConfig:
     """Deferred shading and outputs (stage 4)."""
 
-    width: int = _f(256, ge=8)
+    width: int = Field(256, ge=8)
     """Output width (px)."""
-    height: int = _f(256, ge=8)
+    height: int = Field(256, ge=8)
     """Output height (px)."""
     camera: Literal["static", "orbit"] = "static"
     """Camera path to render."""
@@ -357,53 +356,53 @@ class RenderConfig:
     weights: str = "shipped"
     """Generator: 'shipped' (in the package), 'trained' (this config's best checkpoint, training
     it if needed) or a checkpoint path (relative to the working directory)."""
-    frame_stride: int = _f(1, ge=1)
+    frame_stride: int = Field(1, ge=1)
     """Render every n-th frame."""
-    max_frames: int = _f(0, ge=0)
+    max_frames: int = Field(0, ge=0)
     """Render at most this many frames (0: all)."""
-    normal_threshold: float = _f(0.5, ge=0.0, le=1.0)
+    normal_threshold: float = Field(0.5, ge=0.0, le=1.0)
     """Drop refined pixels whose normal is shorter than this (the paper's noise removal)."""
     fluid_color: Vec3 = (0.55, 0.78, 0.95)
     """Transmittance per metre of the fluid (linear RGB, Beer-Lambert)."""
-    absorption: float = _f(4.0, ge=0.0)
+    absorption: float = Field(4.0, ge=0.0)
     """Absorption strength multiplying -log(fluid_color) (1/m)."""
-    ior: float = _f(1.33, gt=1.0)
+    ior: float = Field(1.33, gt=1.0)
     """Index of refraction (water 1.33)."""
-    refraction_strength: float = _f(0.08, ge=0.0)
+    refraction_strength: float = Field(0.08, ge=0.0)
     """Screen-space refraction offset per metre of thickness (fraction of the image width)."""
-    diffuse_weight: float = _f(0.1, ge=0.0)
+    diffuse_weight: float = Field(0.1, ge=0.0)
     """Weight of the Lambertian term tinted by the fluid colour (scattering inside the fluid)."""
     specular: Literal["blinn", "ggx"] = "ggx"
     """Specular model."""
-    roughness: float = _f(0.08, gt=0.0, le=1.0)
+    roughness: float = Field(0.08, gt=0.0, le=1.0)
     """GGX roughness (alpha = roughness^2) or Blinn exponent from it."""
     light_dir: Vec3 = (0.4, 0.8, 0.45)
     """Direction towards the sun (world space)."""
-    light_intensity: float = _f(3.0, ge=0.0)
+    light_intensity: float = Field(3.0, ge=0.0)
     """Sun radiance scale."""
     environment: str = ""
     """HDR lat-long EXR map for reflections ('' : procedural sky)."""
     exposure: float = 0.0
     """Exposure for previews (stops)."""
-    video_fps: float = _f(30.0, gt=0.0)
+    video_fps: float = Field(30.0, gt=0.0)
     """Preview video frame rate."""
     comparison: bool = True
     """Also write the side-by-side comparison (bilateral | nrf | refined | mesh)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class EvaluateConfig:
     """Held-out metrics (the evaluate stage)."""
 
     methods: tuple[str, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined")
     """Methods compared with the mesh reference."""
-    frames_per_sequence: int = _f(0, ge=0)
+    frames_per_sequence: int = Field(0, ge=0)
     """Frames evaluated per held-out sequence, evenly spread over it (0: all)."""
     imported_scenes: tuple[str, ...] = ()
     """Imported particle scenes also evaluated."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=_RULES)
 class Config:
     """The whole pipeline configuration (configs/*.yaml)."""
 
@@ -417,15 +416,15 @@ class Config:
     """Folder of scene files, relative to the config file that sets it."""
     data_dir: str = "../data"
     """Cache root, relative to the config file that sets it."""
-    simulate: SimulateConfig = _f(factory=SimulateConfig)
+    simulate: SimulateConfig = Field(default_factory=SimulateConfig)
     """Stage 1."""
-    dataset: DatasetConfig = _f(factory=DatasetConfig)
+    dataset: DatasetConfig = Field(default_factory=DatasetConfig)
     """Stage 2."""
-    train: TrainConfig = _f(factory=TrainConfig)
+    train: TrainConfig = Field(default_factory=TrainConfig)
     """Stage 3."""
-    render: RenderConfig = _f(factory=RenderConfig)
+    render: RenderConfig = Field(default_factory=RenderConfig)
     """Stage 4."""
-    evaluate: EvaluateConfig = _f(factory=EvaluateConfig)
+    evaluate: EvaluateConfig = Field(default_factory=EvaluateConfig)
     """Metrics."""
 
 
@@ -433,82 +432,69 @@ class Config:
 # Loading
 
 
-def _check_bounds(value: float, meta: dict, file, key: str) -> None:
-    for op, bound in meta.items():
-        ok = {"gt": value > bound, "ge": value >= bound, "lt": value < bound, "le": value <= bound}[op]
-        if not ok:
-            sym = {"gt": ">", "ge": ">=", "lt": "<", "le": "<="}[op]
-            raise ConfigError(file, key, f"must be {sym} {bound}, got {value}")
+@functools.cache
+def _adapter(cls: type) -> TypeAdapter:
+    return TypeAdapter(cls)
 
 
-def _convert(tp: Any, value: Any, file, key: str) -> Any:
-    """Convert a YAML value to the annotated type, or raise naming the key."""
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        inner = [a for a in args if a is not type(None)]
-        return _convert(inner[0], value, file, key)
-    if origin is Literal:
-        if value not in args:
-            raise ConfigError(file, key, f"must be one of {list(args)}, got {value!r}")
-        return value
-    if origin is tuple:
-        if not isinstance(value, list | tuple):
-            raise ConfigError(file, key, f"must be a list, got {type(value).__name__}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, file, f"{key}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(file, key, f"must have {len(args)} elements, got {len(value)}")
-        return tuple(_convert(a, v, file, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
-    if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value, file, key)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(file, key, f"must be true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(file, key, f"must be an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(file, key, f"must be a number, got {value!r}")
-        if not math.isfinite(value):
-            raise ConfigError(file, key, f"must be a finite number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(file, key, f"must be a string, got {value!r}")
-        return value
-    raise TypeError(f"unsupported config type {tp}")
+def _key(loc: tuple, prefix: str = "") -> str:
+    """``fluid[0].shape`` from pydantic's location tuple."""
+    key = prefix
+    for part in loc:
+        key += f"[{part}]" if isinstance(part, int) else (f".{part}" if key else str(part))
+    return key
+
+
+def _known_keys(cls: type, loc: tuple) -> list[str]:
+    """Field names of the dataclass found by walking ``loc`` (without its last part) from ``cls``."""
+    tp: Any = cls
+    for part in loc[:-1]:
+        if isinstance(part, int):  # an element of a tuple of dataclasses, unwrapped below already
+            continue
+        tp = typing.get_type_hints(tp)[part]
+        inner = [a for a in typing.get_args(tp) if dataclasses.is_dataclass(a)]  # tuple[X, ...], X | None
+        tp = inner[0] if inner else tp
+    return sorted(f.name for f in dataclasses.fields(tp)) if dataclasses.is_dataclass(tp) else []
+
+
+_MESSAGES = {
+    "int_type": "must be an integer", "float_type": "must be a number", "bool_type": "must be true or false",
+    "string_type": "must be a string", "finite_number": "must be a finite number", "tuple_type": "must be a list",
+    "dataclass_type": "must be a mapping", "greater_than": "must be > {gt}", "greater_than_equal": "must be >= {ge}",
+    "less_than": "must be < {lt}", "less_than_equal": "must be <= {le}",
+}
+
+
+def _message(cls: type, err: dict) -> tuple[tuple, str]:
+    """(location, readable message) of one pydantic error."""
+    loc, kind, ctx = tuple(err["loc"]), err["type"], err.get("ctx") or {}
+    if kind == "unexpected_keyword_argument":
+        return loc, f"unknown key (known: {', '.join(_known_keys(cls, loc))})"
+    if kind == "missing":
+        if loc and isinstance(loc[-1], int):
+            return loc[:-1], "has too few elements"
+        return loc, "missing required key"
+    if kind == "too_long":
+        return loc, "has too many elements"
+    got = f", got {err['input']!r}" if "input" in err and not isinstance(err["input"], dict) else ""
+    if kind == "literal_error":
+        return loc, f"must be one of {ctx.get('expected', '')}{got}"
+    return loc, _MESSAGES.get(kind, err["msg"]).format(**ctx) + got
 
 
 def from_dict(cls: type, data: Any, file: str | Path = "<dict>", prefix: str = ""):
-    """Build dataclass ``cls`` from a mapping, rejecting unknown keys and checking types/bounds."""
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(file, prefix, f"must be a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    for k in data:
-        if k not in fields:
-            raise ConfigError(file, f"{prefix}.{k}" if prefix else str(k),
-                              f"unknown key (known: {', '.join(sorted(fields))})")
-    kwargs = {}
-    for name, f in fields.items():
-        key = f"{prefix}.{name}" if prefix else name
-        if name not in data:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise ConfigError(file, key, "missing required key")
-            continue
-        value = _convert(hints[name], data[name], file, key)
-        if isinstance(value, int | float) and not isinstance(value, bool):
-            _check_bounds(value, dict(f.metadata), file, key)
-        kwargs[name] = value
-    return cls(**kwargs)
+    """Build dataclass ``cls`` from loaded YAML, strictly: unknown keys, wrong types and values out
+    of bounds raise ``ConfigError`` naming the file and the key path of the first problem."""
+    data = {} if data is None else data
+    try:
+        text = json.dumps(data, default=str)
+    except ValueError as exc:  # a self-referencing YAML anchor
+        raise ConfigError(file, prefix, f"cannot be read as plain data ({exc})") from None
+    try:
+        return _adapter(cls).validate_json(text, strict=True)
+    except ValidationError as exc:
+        loc, message = _message(cls, exc.errors()[0])
+        raise ConfigError(file, _key(loc, prefix), message) from None
 
 
 def to_dict(obj: Any) -> Any:
@@ -547,7 +533,7 @@ def read_yaml(path: Path) -> Any:
         raise ConfigError(path, "", f"invalid YAML: {exc}".replace("\n", " ")) from None
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class Loaded:
     """A loaded pipeline config with its scenes and where it came from."""
 
@@ -555,7 +541,7 @@ class Loaded:
     scenes: dict[str, SceneConfig]
     path: Path
     data_dir: Path
-    imported: dict[str, SceneConfig] = field(default_factory=dict)
+    imported: dict[str, SceneConfig] = dataclasses.field(default_factory=dict)
     """Imported particle scenes evaluated besides the held-out sequences (evaluate.imported_scenes)."""
 
     def scene(self, name: str) -> SceneConfig:
@@ -605,8 +591,9 @@ def read_layered(path: Path, seen: tuple[Path, ...] = ()) -> dict:
             raw[key] = str((path.parent / raw[key]).resolve())
     base = raw.pop("base", None)
     if base is None:
-        for key, default in (("scene_dir", "scenes"), ("data_dir", "../data")):
-            raw.setdefault(key, str((path.parent / default).resolve()))
+        defaults = {f.name: f.default for f in dataclasses.fields(Config)}
+        for key in _PATH_KEYS:  # the defaults too are relative to the (base) config file
+            raw.setdefault(key, str((path.parent / defaults[key]).resolve()))
         return raw
     if not isinstance(base, str):
         raise ConfigError(path, "base", "must be a path to another config file")

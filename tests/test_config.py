@@ -27,6 +27,10 @@ def _edit(path, fn):
     (lambda b: b["simulate"].update(particle_radius=-0.01), "simulate.particle_radius", "must be > 0"),
     (lambda b: b.update(scenes=["no_such_scene"]), "scenes", "unknown scene 'no_such_scene'"),
     (lambda b: b.update(device="tpu"), "device", "must be one of"),
+    (lambda b: b.update(render={"comparison": 1}), "render.comparison", "must be true or false, got 1"),
+    (lambda b: b["simulate"].update(frames=2.5), "simulate.frames", "must be an integer, got 2.5"),
+    (lambda b: b["simulate"].update(gravity=[0, -9.8]), "simulate.gravity", "has too few elements"),
+    (lambda b: b.update(seed="7"), "seed", "must be an integer, got '7'"),
 ])
 def test_bad_config_exits_2_naming_file_and_key(tiny_dam, capsys, edit, key, words):
     _edit(tiny_dam, edit)
@@ -43,6 +47,9 @@ def test_bad_scene_file_names_scene_file(tiny_dam):
     with pytest.raises(ConfigError) as err:
         load(tiny_dam)
     assert str(scene_file) in str(err.value) and "fluid[0].shape" in str(err.value)
+    _edit(scene_file, lambda s: s["fluid"][0].update(shape="box", lox=[0, 0, 0]))
+    with pytest.raises(ConfigError, match=r"fluid\[0\]\.lox: unknown key \(known: center, hi, lo, radius"):
+        load(tiny_dam)
 
 
 def test_repository_configs_load():
