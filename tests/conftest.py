@@ -32,6 +32,26 @@ def _cuda_marked_tests_use_the_gpu(request, monkeypatch):
     monkeypatch.setenv("DEEP_SSFR_DEVICE", "cuda")
 
 
+@pytest.fixture(scope="session")
+def ss():
+    """Screen-space kernel runner on the CPU, shared by the tests that splat and filter."""
+    from pipeline.screen import ScreenSpace
+
+    runner = ScreenSpace("cpu")
+    yield runner
+    runner.close()
+
+
+@pytest.fixture(scope="session")
+def launch():
+    """Chunked Warp launcher on the CPU, shared by the tests that run surface kernels."""
+    from pipeline.parallel import Launcher
+
+    runner = Launcher("cpu")
+    yield runner
+    runner.close()
+
+
 def kill_after_writes(cmd: list[str], pattern: str, count: int = 1, env: dict | None = None) -> int:
     """Run a stage in a subprocess and SIGKILL it right after its ``count``-th finished file whose
     path matches ``pattern`` (the cache logs each rename at DEBUG level: an event, not a poll).

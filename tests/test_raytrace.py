@@ -8,8 +8,6 @@ import warp as wp
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import DatasetConfig
-from pipeline.parallel import Launcher
-from pipeline.screen import ScreenSpace
 from pipeline.surface import kernels as K
 from pipeline.surface import raytrace_maps
 
@@ -17,12 +15,9 @@ R = 0.01
 P = DatasetConfig(iso_level=0.5, raytrace_step_radii=0.5, raytrace_bisections=20)
 
 
-@pytest.fixture(scope="module")
-def runners():
-    ss, launch = ScreenSpace("cpu"), Launcher("cpu")
-    yield ss, launch
-    ss.close()
-    launch.close()
+@pytest.fixture
+def runners(ss, launch):
+    return ss, launch
 
 
 def _kernels(centres: np.ndarray, support: float):

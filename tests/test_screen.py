@@ -12,13 +12,6 @@ from pipeline.screen import ScreenSpace
 R = 0.0125
 
 
-@pytest.fixture(scope="module")
-def ss():
-    s = ScreenSpace("cpu")
-    yield s
-    s.close()
-
-
 def _camera(size=128, fov=40.0) -> Camera:
     return Camera(look_at((0, 0, 0), (0, 0, -1)), fov, size, size)
 
@@ -239,14 +232,12 @@ def test_two_overlapping_ellipsoids_keep_the_nearer_surface_and_its_normal(ss):
     assert out.mask[row, centre] == 1 and abs(out.depth[row, centre] - 0.52) < 0.01
 
 
-def test_ellipsoids_flatten_a_sheet(ss):
+def test_ellipsoids_flatten_a_sheet(ss, launch):
     """Particles of a jittered two-layer sheet: an interior particle's ellipsoid stays a sphere of
     about the particle radius, and drawing ellipsoids instead of spheres makes the unfiltered
     surface much flatter (its normals closer to the sheet's)."""
-    from pipeline.parallel import Launcher
     from pipeline.surface import particle_ellipsoids
 
-    launch = Launcher("cpu")
     p = DatasetConfig()
     block = np.stack(np.meshgrid(*[np.arange(-6, 7) * 2 * R] * 3, indexing="ij"), -1).reshape(-1, 3)
     ell = particle_ellipsoids(block.astype(np.float32), R, p, launch)
@@ -260,7 +251,6 @@ def test_ellipsoids_flatten_a_sheet(ss):
     sheet = sheet.astype(np.float32)
     spheres = ss.inputs(sheet, R, cam, p, filters=())
     ellipsoids = ss.inputs(sheet, R, cam, p, filters=(), ellipsoids=particle_ellipsoids(sheet, R, p, launch))
-    launch.close()
     from scipy.ndimage import binary_erosion
 
     inner = binary_erosion(spheres["A"] > 0, iterations=15, border_value=0)

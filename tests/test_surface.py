@@ -5,21 +5,12 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pytest
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import DatasetConfig
-from pipeline.parallel import Launcher
 from pipeline.surface import anisotropic_kernels, reconstruct, render_maps
 
 R = 0.01
-
-
-@pytest.fixture(scope="module")
-def launch():
-    lau = Launcher("cpu")
-    yield lau
-    lau.close()
 
 
 def _lattice_ball(radius: float) -> np.ndarray:
