@@ -4,6 +4,7 @@
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
+CLI := $(VENV)/bin/deep-ssfr
 CONFIG ?= configs/default.yaml
 SCENE ?=
 FORCE ?=
@@ -40,30 +41,12 @@ test: setup
 lint: setup
 	$(VENV)/bin/ruff check .
 
-simulate: setup
-	$(PY) -m stages.simulate $(STAGE_ARGS)
+# every stage is a command of the deep-ssfr console script (deep-ssfr --help)
+simulate dataset train ship render evaluate demo: setup
+	$(CLI) $@ $(STAGE_ARGS)
 
 export: setup
-	$(PY) -m stages.export $(STAGE_ARGS) --format $(FORMAT)
-
-dataset: setup
-	$(PY) -m stages.dataset $(STAGE_ARGS)
-
-train: setup
-	$(PY) -m stages.train $(STAGE_ARGS)
-
-# make the config's trained refiner the shipped one (pipeline/weights/refiner.pt and its card)
-ship: setup
-	$(PY) -m stages.ship $(STAGE_ARGS)
-
-render: setup
-	$(PY) -m stages.render $(STAGE_ARGS)
-
-evaluate: setup
-	$(PY) -m stages.evaluate $(STAGE_ARGS)
-
-demo: setup
-	$(PY) -m stages.demo $(STAGE_ARGS)
+	$(CLI) export $(STAGE_ARGS) --format $(FORMAT)
 
 bench: setup
 	$(PY) -m pip install -q -e '.[dev,bench]'
@@ -73,7 +56,7 @@ bench: setup
 	$(PY) benchmarks/bench_render.py --demo
 
 cache-ls: setup
-	$(PY) -m stages.cache ls --config $(CONFIG)
+	$(CLI) cache ls --config $(CONFIG)
 
 clean-cache: setup
-	$(PY) -m stages.cache clean --config $(CONFIG)
+	$(CLI) cache clean --config $(CONFIG)

@@ -44,7 +44,8 @@ def import_closure(module: str) -> tuple[str, ...]:
     code its results depend on, so a cache key over them cannot go stale when one of them changes.
 
     Read from the source (``ast``), imports inside functions included; packages count with their
-    ``__init__``; anything outside ``pipeline`` and ``stages`` (numpy, warp, torch) is left out."""
+    ``__init__``; anything outside ``pipeline`` and ``stages`` (numpy, warp, torch) is left out, and
+    so is a module's ``if __name__ == "__main__":`` block (how it is started, not what it computes)."""
     seen: set[str] = set()
     todo = [module]
     while todo:
@@ -61,7 +62,9 @@ def import_closure(module: str) -> tuple[str, ...]:
         parts = name.split(".")
         package = parts if spec.submodule_search_locations else parts[:-1]
         todo += [".".join(parts[:k]) for k in range(1, len(parts))]  # parent packages' __init__
-        for node in ast.walk(ast.parse(Path(spec.origin).read_text(), spec.origin)):
+        tree = ast.parse(Path(spec.origin).read_text(), spec.origin)
+        tree.body = [n for n in tree.body if not _is_main_guard(n)]
+        for node in ast.walk(tree):
             if isinstance(node, ast.Import):
                 todo += [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom):
@@ -69,6 +72,13 @@ def import_closure(module: str) -> tuple[str, ...]:
                     if node.level else (node.module or "")
                 todo += [base] + [f"{base}.{a.name}" for a in node.names]
     return tuple(sorted(seen))
+
+
+def _is_main_guard(node: ast.stmt) -> bool:
+    """``if __name__ == "__main__":`` at module level."""
+    test = getattr(node, "test", None)
+    return (isinstance(node, ast.If) and isinstance(test, ast.Compare) and isinstance(test.left, ast.Name)
+            and test.left.id == "__name__" and any(getattr(c, "value", None) == "__main__" for c in test.comparators))
 
 
 @functools.cache

@@ -1,14 +1,11 @@
-"""``make cache-ls`` / ``make clean-cache``: list or delete stage cache entries."""
+"""``deep-ssfr cache ls|clean`` (``make cache-ls`` / ``make clean-cache``): list or delete cache entries."""
 
 from __future__ import annotations
 
-import argparse
 import shutil
-import sys
 
 from pipeline.cache import list_entries
 from pipeline.config import load
-from stages.common import stage_main
 
 
 def _human(n: float) -> str:
@@ -19,15 +16,11 @@ def _human(n: float) -> str:
     return f"{n:.1f} GiB"
 
 
-def main(argv: list[str] | None = None) -> None:
-    """List or clean the cache named by the config's ``data_dir``."""
-    parser = argparse.ArgumentParser(prog="make cache-ls|clean-cache")
-    parser.add_argument("action", choices=["ls", "clean"])
-    parser.add_argument("--config", default="configs/default.yaml")
-    args = parser.parse_args(argv)
-    root = load(args.config).data_dir
+def main(action: str, config: str) -> None:
+    """List (``ls``) or delete (``clean``) the cache entries under the config's ``data_dir``."""
+    root = load(config).data_dir
     rows = list_entries(root)
-    if args.action == "ls":
+    if action == "ls":
         total = 0
         for r in rows:
             state = "complete" if r["complete"] else "partial"
@@ -38,7 +31,3 @@ def main(argv: list[str] | None = None) -> None:
     for stage in {r["stage"] for r in rows}:
         shutil.rmtree(root / stage)
     print(f"removed {len(rows)} entries from {root}")
-
-
-if __name__ == "__main__":
-    sys.exit(stage_main("cache", main))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import sys
@@ -39,24 +38,21 @@ class Run:
         return self.loaded.data_dir
 
 
-def parse_args(stage: str, argv: list[str] | None = None, extra: Callable | None = None) -> argparse.Namespace:
-    """``--config``, ``--scene``, ``--force`` plus stage-specific flags."""
-    parser = argparse.ArgumentParser(prog=f"make {stage}", description=f"deep-ssfr {stage} stage")
-    parser.add_argument("--config", default="configs/default.yaml", help="pipeline YAML")
-    parser.add_argument("--scene", default="", help="run only this configured scene")
-    parser.add_argument("--force", action="store_true", help="recompute even if cached")
-    parser.add_argument("--verify", action="store_true",
-                        help="check cached outputs against their recorded hashes, not only their sizes")
-    if extra:
-        extra(parser)
-    return parser.parse_args(argv)
+@dataclass(frozen=True)
+class StageOptions:
+    """What every stage command takes (``deep-ssfr <stage> --help``)."""
+
+    config: str = "configs/default.yaml"
+    scene: str = ""
+    force: bool = False
+    verify: bool = False
 
 
-def make_run(args: argparse.Namespace, overrides: dict | None = None) -> Run:
+def make_run(opts: StageOptions, overrides: dict | None = None) -> Run:
     """Load config and choose the device."""
-    loaded = load(args.config, overrides=overrides, only_scene=args.scene or None)
-    cache.VERIFY_HASHES = bool(getattr(args, "verify", False))
-    return Run(loaded, choose_device(loaded.config.device), bool(args.force))
+    loaded = load(opts.config, overrides=overrides, only_scene=opts.scene or None)
+    cache.VERIFY_HASHES = opts.verify
+    return Run(loaded, choose_device(loaded.config.device), opts.force)
 
 
 def setup_logging() -> None:
@@ -75,7 +71,7 @@ def quiet_warp() -> None:
     wp.config.quiet = True
 
 
-def stage_main(stage: str, body: Callable[[list[str] | None], None], argv: list[str] | None = None) -> int:
+def stage_main(stage: str, body: Callable[[], None]) -> int:
     """Run a stage body, turning known failures into a one-line message and an exit code.
 
     Exit 2 for configuration errors (nothing written), 1 for input, cache or runtime failures;
@@ -84,7 +80,7 @@ def stage_main(stage: str, body: Callable[[list[str] | None], None], argv: list[
     setup_logging()
     quiet_warp()
     try:
-        body(argv)
+        body()
     except ConfigError as exc:
         print(f"{stage}: config error: {exc}", file=sys.stderr)
         return 2

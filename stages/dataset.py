@@ -16,7 +16,7 @@ from pipeline.dataset import build_dataset, manifest_records
 from pipeline.device import warp_device
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
 from stages import simulate
-from stages.common import Run, make_run, parse_args, stage_main
+from stages.common import Run
 
 log = logging.getLogger("deep_ssfr")
 
@@ -56,12 +56,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     return entry
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make dataset``."""
-    run = make_run(parse_args("dataset", argv))
-    for scene in run.loaded.scenes.values():
-        ensure(run, scene, force=run.force)
-
-
 if __name__ == "__main__":
-    sys.exit(stage_main("dataset", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["dataset", *sys.argv[1:]]))

@@ -7,24 +7,24 @@ with the shipped generator, shades, and writes the EXR frames, a preview MP4 and
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
 
 from stages import render
-from stages.common import make_run, parse_args, stage_main
+from stages.common import StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 DEFAULT_SCENE = "dam_break"
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make demo``."""
-    args = parse_args("demo", argv)
-    args.scene = args.scene or DEFAULT_SCENE
-    run = make_run(args, overrides={"render": {"method": "refined", "comparison": True}})
+def main(opts: StageOptions) -> None:
+    """``deep-ssfr demo``."""
+    opts = dataclasses.replace(opts, scene=opts.scene or DEFAULT_SCENE)
+    run = make_run(opts, overrides={"render": {"method": "refined", "comparison": True}})
     start = time.perf_counter()
-    scene = run.loaded.scene(args.scene)
+    scene = run.loaded.scene(opts.scene)
     entry = render.ensure(run, scene, force=run.force)
     p = run.config.render
     wall = time.perf_counter() - start
@@ -37,4 +37,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(stage_main("demo", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["demo", *sys.argv[1:]]))

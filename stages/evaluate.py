@@ -21,7 +21,7 @@ from pipeline.evaluate.sequence import HeldOut, aggregate, evaluate_sequence
 from pipeline.frames import read_sequence_info
 from pipeline.plots import evaluation_figures
 from stages import dataset, render, simulate
-from stages.common import Run, make_run, parse_args, stage_main
+from stages.common import Run, StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 
@@ -45,9 +45,9 @@ def sequences(run: Run) -> list[HeldOut]:
     return out
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make evaluate``."""
-    run = make_run(parse_args("evaluate", argv))
+def main(opts: StageOptions) -> None:
+    """``deep-ssfr evaluate``."""
+    run = make_run(opts)
     methods = tuple(run.config.evaluate.methods)
     refiner, weights = render.load_refiner(run) if "refined" in methods else (None, "")
     seqs = sequences(run)
@@ -76,4 +76,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(stage_main("evaluate", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["evaluate", *sys.argv[1:]]))

@@ -14,25 +14,26 @@ from pipeline import cache
 from pipeline.frames import frame_name, load_frame
 from pipeline.particles import ParticleFrame, write_particles
 from stages import simulate
-from stages.common import make_run, parse_args, stage_main
+from stages.common import StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make export``."""
-    args = parse_args("export", argv, lambda p: p.add_argument("--format", choices=["ply", "vtk"], default="ply"))
-    run = make_run(args)
+def main(opts: StageOptions, fmt: str = "ply") -> None:
+    """``deep-ssfr export``."""
+    run = make_run(opts)
     for scene in run.loaded.scenes.values():
         entry = simulate.ensure(run, scene)
-        out = entry.dir / "export" / args.format
+        out = entry.dir / "export" / fmt
         n = len(entry.manifest()["files"])
         for i in tqdm(range(1, n + 1), desc=f"export {scene.name}", unit="frame"):
             x, v = load_frame(entry.path(frame_name(i)))
-            with cache.atomic_path(out / frame_name(i, args.format)) as tmp:
-                write_particles(tmp, ParticleFrame(x, v), args.format)
-        log.info("export %s: %d %s files in %s", scene.name, n, args.format, out)
+            with cache.atomic_path(out / frame_name(i, fmt)) as tmp:
+                write_particles(tmp, ParticleFrame(x, v), fmt)
+        log.info("export %s: %d %s files in %s", scene.name, n, fmt, out)
 
 
 if __name__ == "__main__":
-    sys.exit(stage_main("export", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["export", *sys.argv[1:]]))

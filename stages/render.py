@@ -18,7 +18,7 @@ from pipeline.frames import frame_name, load_frame, read_sequence_info, select_f
 from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
 from pipeline.renderer import COMPARED, SequenceRenderer
 from stages import simulate
-from stages.common import Run, make_run, parse_args, stage_main
+from stages.common import Run, StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 
@@ -73,9 +73,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     return entry
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make render``."""
-    run = make_run(parse_args("render", argv))
+def main(opts: StageOptions) -> None:
+    """``deep-ssfr render`` of the configured scenes."""
+    run = make_run(opts)
     start = time.perf_counter()
     for scene in run.loaded.scenes.values():
         entry = ensure(run, scene, force=run.force)
@@ -84,4 +84,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(stage_main("render", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["render", *sys.argv[1:]]))

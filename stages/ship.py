@@ -19,7 +19,7 @@ import torch
 from pipeline import cache
 from pipeline.model.inference import SHIPPED_WEIGHTS as SHIPPED
 from stages import train
-from stages.common import make_run, parse_args, stage_main
+from stages.common import StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,16 +57,14 @@ def card(run, entry: cache.CacheEntry, state: dict) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make ship``."""
-    args = parse_args("ship", argv, extra=lambda p: p.add_argument(
-        "--out", default="", help="write refiner.pt, refiner.json and loss_curve.png here instead"))
-    run = make_run(args)
+def main(opts: StageOptions, out: str = "") -> None:
+    """``deep-ssfr ship``; ``out``: write refiner.pt, refiner.json and loss_curve.png there instead."""
+    run = make_run(opts)
     entry = train.ensure(run)
     state = torch.load(entry.path("best.pt"), map_location="cpu", weights_only=True)
     shipped = {k: state[k] for k in ("generator", "generator_args", "config", "epoch", "metrics")}
-    weights = Path(args.out) / SHIPPED.name if args.out else SHIPPED
-    curve = Path(args.out) / "loss_curve.png" if args.out else ROOT / "docs" / "loss_curve.png"
+    weights = Path(out) / SHIPPED.name if out else SHIPPED
+    curve = Path(out) / "loss_curve.png" if out else ROOT / "docs" / "loss_curve.png"
     with cache.atomic_path(weights) as tmp:
         torch.save(shipped, tmp)
     cache.write_json_atomic(weights.with_suffix(".json"), card(run, entry, state))
@@ -77,4 +75,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(stage_main("ship", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["ship", *sys.argv[1:]]))

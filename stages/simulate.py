@@ -14,7 +14,7 @@ from pipeline import cache
 from pipeline.config import SceneConfig, to_dict
 from pipeline.device import warp_device
 from pipeline.sim.runner import import_sequence, simulate_sequence, source_files
-from stages.common import Run, make_run, parse_args, stage_main
+from stages.common import Run
 
 log = logging.getLogger("deep_ssfr")
 
@@ -47,12 +47,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     return entry
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make simulate``."""
-    run = make_run(parse_args("simulate", argv))
-    for scene in run.loaded.scenes.values():
-        ensure(run, scene, force=run.force)
-
-
 if __name__ == "__main__":
-    sys.exit(stage_main("simulate", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["simulate", *sys.argv[1:]]))

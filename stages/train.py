@@ -14,7 +14,7 @@ from pipeline import cache
 from pipeline.config import to_dict
 from pipeline.model.train import fit
 from stages import dataset
-from stages.common import Run, StageError, make_run, parse_args, stage_main
+from stages.common import Run, StageError, StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 
@@ -75,12 +75,14 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     return entry
 
 
-def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``make train``."""
-    run = make_run(parse_args("train", argv))
+def main(opts: StageOptions) -> None:
+    """``deep-ssfr train``."""
+    run = make_run(opts)
     entry = ensure(run, force=run.force)
     log.info("train: checkpoints in %s", entry.dir)
 
 
 if __name__ == "__main__":
-    sys.exit(stage_main("train", main))
+    from stages.cli import main as cli
+
+    sys.exit(cli(["train", *sys.argv[1:]]))

@@ -13,13 +13,13 @@ import yaml
 from pipeline import cache
 from pipeline.config import load
 from pipeline.frames import load_frame
-from stages import simulate
-from stages.common import Run, stage_main
+from stages import cli, simulate
+from stages.common import Run
 from tests.conftest import ROOT, kill_after_writes
 
 
 def _run(config, *extra):
-    return stage_main("simulate", simulate.main, ["--config", str(config), *extra])
+    return cli.main(["simulate", "--config", str(config), *extra])
 
 
 def _entries(config, stage="simulate"):

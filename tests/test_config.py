@@ -6,12 +6,11 @@ import pytest
 import yaml
 
 from pipeline.config import ConfigError, load
-from stages import simulate
-from stages.common import stage_main
+from stages import cli
 
 
 def _run(path, capsys):
-    code = stage_main("simulate", simulate.main, ["--config", str(path)])
+    code = cli.main(["simulate", "--config", str(path)])
     return code, capsys.readouterr().err
 
 

@@ -9,8 +9,7 @@ from pipeline.camera import Camera, look_at
 from pipeline.config import Cameras, FluidShape, SceneConfig, SimulateConfig, from_dict
 from pipeline.exr import read_exr, stack
 from pipeline.screen import ScreenSpace
-from stages import render
-from stages.common import stage_main
+from stages import cli
 from tests.conftest import CAMERAS
 
 pytestmark = pytest.mark.cuda
@@ -72,7 +71,7 @@ def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch)
     frames = {}
     for device in ("cuda", "cpu"):
         monkeypatch.setenv("DEEP_SSFR_DEVICE", device)
-        assert stage_main("render", render.main, ["--config", str(config)]) == 0
+        assert cli.main(["render", "--config", str(config)]) == 0
         (entry,) = [e for e in (tmp_path / "data" / "render").iterdir() if e.name not in frames.values()]
         frames[device] = entry.name
     ch = {d: read_exr(tmp_path / "data" / "render" / name / "frames" / "frame_0002.exr") for d, name in frames.items()}

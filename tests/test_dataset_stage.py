@@ -8,8 +8,7 @@ import numpy as np
 import yaml
 
 from pipeline.exr import read_exr
-from stages import dataset
-from stages.common import stage_main
+from stages import cli
 from tests.conftest import ROOT
 
 
@@ -26,7 +25,7 @@ def shrunk_default(tmp_path, frames: int = 4, size: int = 64, **extra) -> str:
 
 def test_dataset_smoke_all_scenes(tmp_path):
     config = shrunk_default(tmp_path)
-    assert stage_main("dataset", dataset.main, ["--config", config]) == 0
+    assert cli.main(["dataset", "--config", config]) == 0
     entries = sorted((tmp_path / "data" / "dataset").iterdir())
     assert len(entries) == 6
     for entry in entries:
@@ -48,27 +47,27 @@ def test_dataset_smoke_all_scenes(tmp_path):
         assert len(list((entry / "meshes").glob("*.ply"))) == 2
     # a re-run is a hit: nothing is rewritten
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "data").rglob("*.exr")}
-    assert stage_main("dataset", dataset.main, ["--config", config]) == 0
+    assert cli.main(["dataset", "--config", config]) == 0
     assert stamps == {p: p.stat().st_mtime_ns for p in (tmp_path / "data").rglob("*.exr")}
 
 
 def test_dataset_param_change_recomputes_only_downstream(tmp_path):
     config = shrunk_default(tmp_path)
     args = ["--config", config, "--scene", "dam_break"]
-    assert stage_main("dataset", dataset.main, args) == 0
+    assert cli.main(["dataset", *args]) == 0
     sims = sorted((tmp_path / "data" / "simulate").iterdir())
     body = yaml.safe_load(open(config))
     body["dataset"]["bilateral_range_radii"] = 3.0
     open(config, "w").write(yaml.safe_dump(body))
     sim_stamp = (sims[0] / "manifest.json").stat().st_mtime_ns
-    assert stage_main("dataset", dataset.main, args) == 0
+    assert cli.main(["dataset", *args]) == 0
     assert sorted((tmp_path / "data" / "simulate").iterdir()) == sims
     assert (sims[0] / "manifest.json").stat().st_mtime_ns == sim_stamp
     assert len(list((tmp_path / "data" / "dataset").iterdir())) == 2
     # an upstream change re-runs both
     body["simulate"]["xsph_viscosity"] = 0.03
     open(config, "w").write(yaml.safe_dump(body))
-    assert stage_main("dataset", dataset.main, args) == 0
+    assert cli.main(["dataset", *args]) == 0
     assert len(list((tmp_path / "data" / "simulate").iterdir())) == 2
     assert len(list((tmp_path / "data" / "dataset").iterdir())) == 3
 
@@ -84,7 +83,7 @@ def test_imported_sequence_goes_through_the_dataset(tmp_path):
     (tmp_path / "scenes" / "bunny.yaml").write_text(yaml.safe_dump(scene))
     (tmp_path / "c.yaml").write_text(yaml.safe_dump({"scenes": ["bunny"], "scene_dir": "scenes", "data_dir": "data",
                                                      "dataset": {"width": 64, "height": 64}}))
-    assert stage_main("dataset", dataset.main, ["--config", str(tmp_path / "c.yaml")]) == 0
+    assert cli.main(["dataset", "--config", str(tmp_path / "c.yaml")]) == 0
     (entry,) = (tmp_path / "data" / "dataset").iterdir()
     ch = read_exr(entry / "static" / "frame_0001.exr")
     assert ch["A"].mean() > 0.05 and ch["target.A"].mean() > 0.05

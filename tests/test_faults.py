@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from stages import render, simulate
-from stages.common import stage_main
+from stages import cli
 from tests.conftest import ROOT, kill_after_writes
 
 
@@ -42,13 +41,13 @@ def test_disk_full_while_simulating_is_one_line_and_resumes(tiny_dam, capsys, mo
     cause; no manifest (the entry is not complete); a later run resumes and completes."""
     real = np.savez
     monkeypatch.setattr(np, "savez", _full_at_call(4, real))
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 1
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("simulate: error: No space left on device") and "frame_0004.npz" in line
     (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
     assert not (entry / "manifest.json").exists() and not list(entry.glob(".*tmp*"))
     monkeypatch.setattr(np, "savez", real)
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
     assert (entry / "manifest.json").exists() and len(list(entry.glob("frame_*.npz"))) == 6
 
 
@@ -61,7 +60,7 @@ def test_disk_full_while_writing_an_exr_is_one_line(tiny_dam, capsys, monkeypatc
     body["render"] = {"width": 48, "height": 48, "method": "nrf", "comparison": False}
     tiny_dam.write_text(yaml.safe_dump(body))
     monkeypatch.setattr(OpenEXR.File, "write", _enospc)
-    assert stage_main("render", render.main, ["--config", str(tiny_dam)]) == 1
+    assert cli.main(["render", "--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("render: error: No space left on device") and ".exr" in line
     (entry,) = (tiny_dam.parent / "data" / "render").iterdir()
@@ -71,7 +70,7 @@ def test_disk_full_while_writing_an_exr_is_one_line(tiny_dam, capsys, monkeypatc
 def test_a_duplicated_yaml_key_is_rejected(tmp_path, capsys):
     path = tmp_path / "dup.yaml"
     path.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nsimulate:\n  frames: 4\n  frames: 8\n")
-    assert stage_main("simulate", simulate.main, ["--config", str(path)]) == 2
+    assert cli.main(["simulate", "--config", str(path)]) == 2
     line = _one_line(capsys.readouterr().err)
     assert "dup.yaml" in line and "duplicate key 'frames'" in line and "line 3" in line
 
@@ -86,7 +85,7 @@ def test_non_finite_and_absurd_numbers_are_named(tiny_dam, capsys, key, value, w
     if key == "particle_radius":
         text = text.replace("  particle_radius: 0.0125\n", "")
     tiny_dam.write_text(text)
-    code = stage_main("simulate", simulate.main, ["--config", str(tiny_dam)])
+    code = cli.main(["simulate", "--config", str(tiny_dam)])
     line = _one_line(capsys.readouterr().err)
     assert code in (1, 2) and words in line, line
 
@@ -98,7 +97,6 @@ def test_dataset_workers_never_load_warp_modules_at_once(tiny_dam, monkeypatch):
 
     import warp as wp
 
-    from stages import dataset
 
     real = wp.load_module
     state = {"inside": 0, "most": 0, "calls": 0}
@@ -120,28 +118,27 @@ def test_dataset_workers_never_load_warp_modules_at_once(tiny_dam, monkeypatch):
     body = yaml.safe_load(tiny_dam.read_text())
     body["dataset"] = {"width": 32, "height": 32, "frame_stride": 1, "workers": 2}
     tiny_dam.write_text(yaml.safe_dump(body))
-    assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["dataset", "--config", str(tiny_dam)]) == 0
     assert state["calls"] > 2 and state["most"] == 1, state
 
 
 def test_a_corrupt_upstream_file_names_the_command_that_rebuilds_it(tiny_dam, capsys):
     """A finished simulation with a damaged frame: the dataset stage names the file and the exact
     command, and running that command does fix it."""
-    from stages import dataset
 
     body = yaml.safe_load(tiny_dam.read_text())
     body["dataset"] = {"width": 32, "height": 32, "frame_stride": 1}
     tiny_dam.write_text(yaml.safe_dump(body))
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
     (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
     size = (entry / "frame_0003.npz").stat().st_size
     (entry / "frame_0003.npz").write_bytes(b"g" * size)  # same size: only a hash would tell
     capsys.readouterr()
-    assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 1
+    assert cli.main(["dataset", "--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
     assert "frame_0003.npz" in line and "`make simulate FORCE=1 SCENE=tiny_dam`" in line, line
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam), "--scene", "tiny_dam", "--force"]) == 0
-    assert stage_main("dataset", dataset.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(tiny_dam), "--scene", "tiny_dam", "--force"]) == 0
+    assert cli.main(["dataset", "--config", str(tiny_dam)]) == 0
 
 
 @pytest.mark.parametrize("binary", [False, True])
@@ -203,7 +200,7 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
     body["render"] = {"width": 128, "height": 128, "method": "nrf", "comparison": True}
     config = small_disk.parent / "config.yaml"
     config.write_text(yaml.safe_dump(body))
-    assert stage_main("simulate", simulate.main, ["--config", str(config)]) == 0
+    assert cli.main(["simulate", "--config", str(config)]) == 0
     fill = small_disk / "fill"
     failures = set()
     for budget in range(150_000, 1_200_000, 70_000):
@@ -211,7 +208,7 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
         fill.unlink(missing_ok=True)
         fill.write_bytes(b"0" * max(shutil.disk_usage(small_disk).free - budget, 0))
         capsys.readouterr()
-        code = stage_main("render", render.main, ["--config", str(config)])
+        code = cli.main(["render", "--config", str(config)])
         err = capsys.readouterr().err
         assert "Traceback" not in err
         if code:
@@ -235,13 +232,13 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
     renderer.write_video = video_on_a_full_disk
     try:
         capsys.readouterr()
-        assert stage_main("render", render.main, ["--config", str(config)]) == 1
+        assert cli.main(["render", "--config", str(config)]) == 1
     finally:
         renderer.write_video = real_video
     line = _one_line(capsys.readouterr().err)
     assert "No space left on device" in line and line.split("(")[-1].startswith(str(small_disk)) and ".mp4)" in line
     fill.unlink()
-    assert stage_main("render", render.main, ["--config", str(config)]) == 0
+    assert cli.main(["render", "--config", str(config)]) == 0
 
 
 def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, caplog):
@@ -253,13 +250,13 @@ def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, ca
     body["render"] = {"width": 48, "height": 48, "method": "nrf", "comparison": False}
     tiny_dam.write_text(yaml.safe_dump(body))
     args = ["--config", str(tiny_dam)]
-    assert stage_main("render", render.main, args) == 0
+    assert cli.main(["render", *args]) == 0
     (entry,) = (tiny_dam.parent / "data" / "render").iterdir()
     frames = entry / "frames"
     whole = (frames / "frame_0003.exr").read_bytes()
     kept = (frames / "frame_0001.exr").stat().st_mtime_ns
     (frames / "frame_0003.exr").write_bytes(whole[: len(whole) // 2])  # truncated
-    assert stage_main("render", render.main, args) == 0
+    assert cli.main(["render", *args]) == 0
     assert "frame_0003.exr is damaged" in caplog.text
     assert (frames / "frame_0003.exr").read_bytes() == whole and read_exr(frames / "frame_0003.exr")["A"].any()
     assert (frames / "frame_0001.exr").stat().st_mtime_ns == kept
@@ -268,9 +265,9 @@ def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, ca
     flipped[-10] ^= 0xFF  # same size, other content
     (frames / "frame_0003.exr").write_bytes(bytes(flipped))
     caplog.clear()
-    assert stage_main("render", render.main, args) == 0
+    assert cli.main(["render", *args]) == 0
     assert "damaged" not in caplog.text and (frames / "frame_0003.exr").read_bytes() == bytes(flipped)
-    assert stage_main("render", render.main, [*args, "--verify"]) == 0
+    assert cli.main(["render", *args, "--verify"]) == 0
     assert "content differs from the recorded hash" in caplog.text
     assert (frames / "frame_0003.exr").read_bytes() == whole
 
@@ -278,12 +275,11 @@ def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, ca
 def test_disk_full_while_exporting_is_one_line(tiny_dam, capsys, monkeypatch):
     from pathlib import Path
 
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
     monkeypatch.setattr(Path, "write_bytes", _enospc)
     capsys.readouterr()
-    from stages import export
 
-    assert stage_main("export", export.main, ["--config", str(tiny_dam), "--format", "ply"]) == 1
+    assert cli.main(["export", "--config", str(tiny_dam), "--format", "ply"]) == 1
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("export: error: No space left on device") and "frame_0001.ply" in line, line
 
@@ -291,12 +287,11 @@ def test_disk_full_while_exporting_is_one_line(tiny_dam, capsys, monkeypatch):
 def test_disk_full_while_saving_a_checkpoint_is_one_line(tmp_path, capsys, monkeypatch):
     import torch
 
-    from stages import train
     from tests.test_model import _tiny_train_config
 
     config = _tiny_train_config(tmp_path, "full")
     monkeypatch.setattr(torch, "save", _enospc)
-    assert stage_main("train", train.main, ["--config", config]) == 1
+    assert cli.main(["train", "--config", config]) == 1
     line = _one_line(capsys.readouterr().err)
     assert line.startswith("train: error: No space left on device") and "last.pt" in line, line
     assert not list((tmp_path / "full" / "data" / "train").glob("*/manifest.json"))
@@ -361,20 +356,20 @@ def test_a_damaged_middle_frame_of_an_unfinished_entry_is_redone(tiny_dam, caplo
     and the sequence ends equal to a clean run's."""
     real = np.savez
     monkeypatch.setattr(np, "savez", _full_at_call(5, real))
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 1
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 1
     monkeypatch.setattr(np, "savez", real)
     (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
     assert (entry / "journal.jsonl").exists() and not (entry / "manifest.json").exists()
     (entry / "frame_0002.npz").write_bytes((entry / "frame_0002.npz").read_bytes()[:100])
     caplog.set_level("WARNING")
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
     assert "frame_0002.npz is damaged" in caplog.text
     assert not (entry / "journal.jsonl").exists(), "the manifest supersedes the journal"
     resumed = {f.name: f.read_bytes() for f in entry.glob("frame_*.npz")}
     import shutil
 
     shutil.rmtree(entry)
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
     assert resumed == {f.name: f.read_bytes() for f in entry.glob("frame_*.npz")}
 
 
@@ -387,6 +382,6 @@ def test_a_read_only_disk_is_one_line(small_disk, tiny_dam, capsys):
     (small_disk / "data").mkdir()
     assert subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], capture_output=True).returncode == 0
     capsys.readouterr()
-    assert stage_main("simulate", simulate.main, ["--config", str(tiny_dam)]) == 1
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
     assert "Read-only file system" in line and str(small_disk) in line, line

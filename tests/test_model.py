@@ -137,12 +137,11 @@ def test_resume_after_kill_equals_straight_run(tmp_path):
 
 def test_ship_writes_loadable_weights_and_their_card(tmp_path):
     from pipeline.model.inference import load_refiner
-    from stages import ship
-    from stages.common import stage_main
+    from stages import cli
 
     config = _tiny_train_config(tmp_path, "ship")
     out = tmp_path / "weights"
-    assert stage_main("ship", ship.main, ["--config", config, "--out", str(out)]) == 0
+    assert cli.main(["ship", "--config", config, "--out", str(out)]) == 0
     refiner = load_refiner(out / "refiner.pt")
     assert refiner.splat == "ellipsoid" and refiner.auxiliary
     card = json.loads((out / "refiner.json").read_text())
@@ -154,13 +153,12 @@ def test_ship_writes_loadable_weights_and_their_card(tmp_path):
 
 
 def test_a_crop_larger_than_the_images_is_an_error(tmp_path, capsys):
-    from stages import train
-    from stages.common import stage_main
+    from stages import cli
 
     config = _tiny_train_config(tmp_path, "crop")
     body = yaml.safe_load(open(config))
     body["train"]["crop"] = 96  # the tiny dataset is 64 x 64
     open(config, "w").write(yaml.safe_dump(body))
-    assert stage_main("train", train.main, ["--config", config]) == 1
+    assert cli.main(["train", "--config", config]) == 1
     err = capsys.readouterr().err
     assert "train.crop is 96 px but the dataset's images are 64x64" in err

@@ -12,8 +12,7 @@ from pipeline.config import TrainConfig
 from pipeline.exr import read_exr
 from pipeline.media import count_video_frames
 from pipeline.model.trainer import Refiner
-from stages import evaluate, render
-from stages.common import stage_main
+from stages import cli
 from tests.conftest import ROOT
 
 
@@ -48,7 +47,7 @@ def _tiny_checkpoint(tmp_path, splat: str = "sphere") -> str:
 
 def test_render_writes_named_exr_sequence_video_and_comparison(tmp_path):
     config = _config(tmp_path, _tiny_checkpoint(tmp_path))
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     (entry,) = (tmp_path / "data" / "render").iterdir()
     exrs = sorted((entry / "frames").glob("*.exr"))
     assert [p.name for p in exrs] == ["frame_0001.exr", "frame_0003.exr"]
@@ -66,7 +65,7 @@ def test_render_writes_named_exr_sequence_video_and_comparison(tmp_path):
 
 def test_missing_model_is_a_clear_error(tmp_path, capsys):
     config = _config(tmp_path, str(tmp_path / "nope.pt"))
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 1
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 1
     err = capsys.readouterr().err
     assert "nope.pt" in err and "make train" in err
 
@@ -83,7 +82,7 @@ def test_empty_frames_and_blind_cameras_still_render(tmp_path, caplog):
     body["scene_dir"] = str(scene_dir)
     body["evaluate"]["imported_scenes"] = []
     open(config, "w").write(yaml.safe_dump(body))
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     assert "sees no fluid in 2 frames" in caplog.text
     (entry,) = (tmp_path / "data" / "render").iterdir()
     assert len(list((entry / "frames").glob("*.exr"))) == 2
@@ -91,15 +90,14 @@ def test_empty_frames_and_blind_cameras_still_render(tmp_path, caplog):
 
 def test_an_empty_particle_frame_renders_background_and_the_rest_render(tmp_path, caplog):
     from pipeline.frames import save_frame
-    from stages import simulate
 
     caplog.set_level("WARNING")
     config = _config(tmp_path, _tiny_checkpoint(tmp_path), method="nrf", comparison=False)
-    assert stage_main("simulate", simulate.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["simulate", "--config", config, "--scene", "dam_break"]) == 0
     (sim,) = (tmp_path / "data" / "simulate").iterdir()
     save_frame(sim / "frame_0003.npz", np.zeros((0, 3), np.float32), None)
     _record(sim, "frame_0003.npz")  # as if the simulation had written it (else it is redone as damaged)
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     assert "sees no fluid in 1 frames (first: 3)" in caplog.text
     (entry,) = (tmp_path / "data" / "render").iterdir()
     first = read_exr(entry / "frames" / "frame_0001.exr")
@@ -109,7 +107,7 @@ def test_an_empty_particle_frame_renders_background_and_the_rest_render(tmp_path
 
 def test_evaluate_smoke(tmp_path):
     config = _config(tmp_path, _tiny_checkpoint(tmp_path))
-    assert stage_main("evaluate", evaluate.main, ["--config", config]) == 0
+    assert cli.main(["evaluate", "--config", config]) == 0
     (entry,) = (tmp_path / "data" / "evaluate").iterdir()
     report = (entry / "report.md").read_text()
     for method in ("Gaussian", "bilateral", "narrow-range", "ellipsoids", "ellipsoids + narrow-range",
@@ -128,19 +126,19 @@ def test_a_render_killed_between_its_exr_and_preview_resumes(tmp_path):
     """Outputs are written on a background thread; a frame counts as done only when its EXR and its
     preview (and comparison) all exist, so a frame whose preview is missing is redone, not stuck."""
     config = _config(tmp_path, _tiny_checkpoint(tmp_path), method="nrf", comparison=False)
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     (entry,) = (tmp_path / "data" / "render").iterdir()
     (entry / "manifest.json").unlink()  # as if killed before the end
     (entry / "preview" / "frame_0003.png").unlink()
     kept = (entry / "frames" / "frame_0001.exr").stat().st_mtime_ns
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     assert (entry / "preview" / "frame_0003.png").exists() and (entry / "manifest.json").exists()
     assert (entry / "frames" / "frame_0001.exr").stat().st_mtime_ns == kept, "finished frames are not redone"
 
 
 def test_render_with_ellipsoid_splats(tmp_path):
     config = _config(tmp_path, _tiny_checkpoint(tmp_path), method="aniso_nrf", comparison=False)
-    assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     (entry,) = (tmp_path / "data" / "render").iterdir()
     ch = read_exr(entry / "frames" / "frame_0003.exr")
     fluid = ch["mask"] > 0
@@ -157,7 +155,7 @@ def test_refiner_trained_on_ellipsoid_splats_renders_from_them(tmp_path):
     for splat in ("sphere", "ellipsoid"):
         (tmp_path / splat).mkdir()
         config = _config(tmp_path / splat, _tiny_checkpoint(tmp_path, splat), comparison=False, normal_threshold=0.0)
-        assert stage_main("render", render.main, ["--config", config, "--scene", "dam_break"]) == 0
+        assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
         (entry,) = (tmp_path / splat / "data" / "render").iterdir()
         results[splat] = read_exr(entry / "frames" / "frame_0003.exr")["mask"]
     assert results["ellipsoid"].sum() != results["sphere"].sum()

@@ -20,8 +20,7 @@ from pipeline.screen import ScreenSpace
 from pipeline.sim.pbf import PBFSolver
 from pipeline.surface import particle_ellipsoids, reconstruct
 from pipeline.views import screen_space_inputs, target_channels
-from stages import demo
-from stages.common import stage_main
+from stages import cli
 from tests.conftest import ROOT
 
 
@@ -73,7 +72,7 @@ def test_demo_runs_end_to_end_shrunk(tmp_path, capsys):
             "render": {"width": 64, "height": 64}}
     config = tmp_path / "demo.yaml"
     config.write_text(yaml.safe_dump(body))
-    assert stage_main("demo", demo.main, ["--config", str(config)]) == 0
+    assert cli.main(["demo", "--config", str(config)]) == 0
     out = capsys.readouterr().out
     assert "dam_break_comparison_sheet.png" in out and "frame_0001.exr" in out
     (entry,) = (tmp_path / "data" / "render").iterdir()
