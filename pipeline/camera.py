@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -94,3 +95,105 @@ def camera_for_frame(cameras: Cameras, path: str, index: int, count: int, width:
         eye = target + np.array([c.distance * math.sin(azimuth), c.height, c.distance * math.cos(azimuth)])
         return Camera(look_at(eye, target), c.fov_deg, width, height)
     raise ValueError(f"unknown camera path {path!r} (static or orbit)")
+
+
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""Rotation taking Z-up world coordinates (Blender, Houdini's Z-up scenes) to the pipeline's Y-up:
+(x, y, z) -> (x, z, -y)."""
+
+
+def camera_from_pose(cam_to_world: np.ndarray, focal_mm: float, sensor_width_mm: float, width: int,
+                     height: int) -> Camera:
+    """A camera from a 3D package's pose (camera-to-world 4x4, looking down -Z with +Y up) and lens.
+
+    The sensor width spans the image's longer side (Blender's automatic sensor fit)."""
+    tan_long = 0.5 * sensor_width_mm / focal_mm
+    tan_y = tan_long if height >= width else tan_long * height / width
+    return Camera(np.linalg.inv(np.asarray(cam_to_world, np.float64)), math.degrees(2 * math.atan(tan_y)), width,
+                  height)
+
+
+def lens_of(camera: Camera, sensor_width_mm: float = 36.0) -> float:
+    """The focal length (mm) that gives ``camera`` its field of view on a sensor this wide."""
+    tan_y = math.tan(math.radians(camera.fov_y_deg) / 2)
+    tan_long = tan_y if camera.height >= camera.width else tan_y * camera.width / camera.height
+    return 0.5 * sensor_width_mm / tan_long
+
+
+def framing_cameras(lo, hi, width: int, height: int, count: int, orbit: bool = False, fov_deg: float = 40.0,
+                    elevation_deg: float = 20.0, azimuth_deg: float = 30.0, margin: float = 1.08) -> list[Camera]:
+    """``count`` cameras that keep the box ``lo``..``hi`` (Y up) in view from ``elevation_deg``:
+    all at ``azimuth_deg`` or, with ``orbit``, circling the box once over the sequence."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    centre, reach = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
+    tan_y = math.tan(math.radians(fov_deg) / 2)
+    tan_narrow = min(tan_y, tan_y * width / height)
+    distance = margin * reach / math.sin(math.atan(tan_narrow))
+    el = math.radians(elevation_deg)
+    cameras = []
+    for i in range(count):
+        az = math.radians(azimuth_deg + (360.0 * i / count if orbit else 0.0))
+        eye = centre + distance * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+        cameras.append(Camera(look_at(eye, centre), fov_deg, width, height))
+    return cameras
+
+
+def _to_y_up(up: str) -> np.ndarray:
+    """4x4 rotation from a world with ``up`` ('y' or 'z') to the pipeline's Y-up world."""
+    out = np.eye(4)
+    if up == "z":
+        out[:3, :3] = Z_UP_TO_Y_UP
+    elif up != "y":
+        raise ValueError(f"up must be 'y' or 'z', got {up!r}")
+    return out
+
+
+def read_camera_file(path: Path, frames: list[int], width: int, height: int) -> list[Camera]:
+    """The cameras of ``frames`` from a camera JSON (``write_camera_file``'s format; the README shows
+    a Blender script that exports one): one entry per frame number, or a single entry for all."""
+    import json
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        up = data.get("up", "y")
+        rotate = _to_y_up(up)
+        entries = {int(e["frame"]) if "frame" in e else None: e for e in data["frames"]}
+        if not entries:
+            raise ValueError("it lists no frames")
+        single = next(iter(entries.values())) if len(entries) == 1 else None
+        missing = [f for f in frames if f not in entries and single is None]
+        if missing:
+            raise ValueError(f"no camera for frames {missing[:5]}{' ...' if len(missing) > 5 else ''}")
+        cameras = []
+        for f in frames:
+            e = entries.get(f, single)
+            pose = np.asarray(e["camera_to_world"], np.float64)
+            if pose.shape != (4, 4) or not np.isfinite(pose).all():
+                raise ValueError(f"frame {f}: camera_to_world must be a finite 4x4 matrix")
+            cameras.append(camera_from_pose(rotate @ pose, float(e["focal_length_mm"]),
+                                            float(e.get("sensor_width_mm", 36.0)), width, height))
+        return cameras
+    except FileNotFoundError:
+        raise FileNotFoundError(f"camera file {path} not found") from None
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        message = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise ValueError(f"camera file {path}: {message}") from None
+
+
+def write_camera_file(path: Path, cameras: list[Camera], frames: list[int], up: str = "y",
+                      sensor_width_mm: float = 36.0) -> None:
+    """Per-frame camera-to-world matrices (in the world whose up axis is ``up``), focal length and
+    sensor width as JSON, so a 3D package can match the rendered frames."""
+    import json
+
+    from pipeline.cache import atomic_path
+
+    back = np.linalg.inv(_to_y_up(up))
+    entries = [{"frame": int(f), "camera_to_world": (back @ c.cam_to_world).round(9).tolist(),
+                "focal_length_mm": round(lens_of(c, sensor_width_mm), 6), "sensor_width_mm": sensor_width_mm}
+               for f, c in zip(frames, cameras, strict=True)]
+    body = {"format": "deep-ssfr camera 1", "up": up, "width": cameras[0].width if cameras else 0,
+            "height": cameras[0].height if cameras else 0, "frames": entries}
+    with atomic_path(Path(path)) as tmp:
+        tmp.write_text(json.dumps(body, indent=1))
