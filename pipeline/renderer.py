@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.camera import Camera
-from pipeline.config import Config, SceneConfig
+from pipeline.config import Config
 from pipeline.device import warp_device
 from pipeline.exr import write_exr
 from pipeline.frames import frame_name, spread
@@ -26,7 +26,7 @@ from pipeline.methods import NAMES, RenderedFrame, normal_source, shade_frame
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, load_environment, tonemap
-from pipeline.shading.background import BackgroundRenderer
+from pipeline.shading.background import BackgroundRenderer, Surroundings
 from pipeline.timing import Timings
 from pipeline.writer import BackgroundWriter
 
@@ -38,8 +38,8 @@ class SequenceRenderer:
     """Renders the frames of one sequence with ``render.method`` (and the compared methods) into
     ``folder``, timing each step; ``close()`` (or ``with``) releases the device buffers."""
 
-    def __init__(self, folder: Path, name: str, scene: SceneConfig, config: Config, device: str, refiner=None):
-        self.folder, self.name, self.scene, self.config = Path(folder), name, scene, config
+    def __init__(self, folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner=None):
+        self.folder, self.name, self.config = Path(folder), name, config
         p = config.render
         self.methods = [p.method] + [m for m in COMPARED if p.comparison and m != p.method]
         if "refined" in self.methods and refiner is None:
@@ -48,7 +48,7 @@ class SequenceRenderer:
         wdev = warp_device(device)
         self.ss, self.launch = ScreenSpace(wdev), Launcher(wdev)
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
-        self.background = BackgroundRenderer(scene, p, p.width, p.height)
+        self.background = BackgroundRenderer(around, p, p.width, p.height)
         self.timings = Timings()
 
     def outputs(self, frame: int) -> list[str]:

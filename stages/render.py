@@ -17,6 +17,7 @@ from pipeline.config import SceneConfig, to_dict
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
 from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
 from pipeline.renderer import COMPARED, SequenceRenderer
+from pipeline.shading.background import Surroundings
 from stages import simulate
 from stages.common import Run, StageOptions, make_run
 
@@ -62,7 +63,8 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)
     log.info("render %s: %d frames, %s camera, method %s%s, %dx%d", scene.name, len(frames), p.camera, p.method,
              " + comparison" if p.comparison else "", p.width, p.height)
-    with SequenceRenderer(entry.dir, scene.name, scene, run.config, run.device, refiner) as renderer:
+    with SequenceRenderer(entry.dir, scene.name, Surroundings.of_scene(scene), run.config, run.device,
+                          refiner) as renderer:
         files = renderer.render(frames, lambda f: load_frame(sim.path(frame_name(f)))[0], info.particle_radius,
                                 lambda i: camera_for_frame(scene.cameras, p.camera, i, len(frames), p.width,
                                                            p.height))

@@ -25,7 +25,7 @@ from pipeline.model.data import input_channels
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, tonemap
-from pipeline.shading.background import BackgroundRenderer
+from pipeline.shading.background import BackgroundRenderer, Surroundings
 from pipeline.timing import Timings
 
 TIMED_FRAMES = 3
@@ -60,7 +60,7 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     records = spread(seq.records, config.evaluate.frames_per_sequence)
     width, height = config.dataset.width, config.dataset.height
     shader = Shader(warp_device(device))
-    background = BackgroundRenderer(seq.scene, rp, width, height)
+    background = BackgroundRenderer(Surroundings.of_scene(seq.scene), rp, width, height)
     scores = {k: {m: [] for m in methods} for k in ("errors", "per_frame", "iou", "psnr", "ssim")}
     examples = []
     try:

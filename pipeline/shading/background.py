@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.camera import Camera
-from pipeline.config import RenderConfig, SceneConfig
+from pipeline.config import Obstacle, RenderConfig, SceneConfig
 from pipeline.shading import srgb_to_linear
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
@@ -53,14 +54,30 @@ def _light_pose(direction) -> np.ndarray:
     return np.linalg.inv(look_at(d, (0.0, 0.0, 0.0)))
 
 
-class BackgroundRenderer:
-    """Renders a scene's floor, walls and obstacles from any camera (cached per camera)."""
+@dataclass(frozen=True)
+class Surroundings:
+    """What stands around the fluid: a floor under the box ``lo``..``hi`` (Y up), the container's
+    back and side walls when ``walls``, and the obstacles."""
 
-    def __init__(self, scene: SceneConfig, p: RenderConfig, width: int, height: int):
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    obstacles: tuple[Obstacle, ...] = ()
+    walls: bool = True
+
+    @classmethod
+    def of_scene(cls, scene: SceneConfig) -> Surroundings:
+        """A configured scene's container and obstacles."""
+        return cls(scene.domain_lo, scene.domain_hi, scene.obstacles)
+
+
+class BackgroundRenderer:
+    """Renders the floor, walls and obstacles from any camera (cached per camera)."""
+
+    def __init__(self, around: Surroundings, p: RenderConfig, width: int, height: int):
         import pyrender
 
         self._pyrender = pyrender
-        lo, hi = np.asarray(scene.domain_lo, float), np.asarray(scene.domain_hi, float)
+        lo, hi = np.asarray(around.lo, float), np.asarray(around.hi, float)
         span = float((hi - lo).max())
         self.scene = pyrender.Scene(ambient_light=np.full(3, 0.35), bg_color=np.array([0.0, 0.0, 0.0, 0.0]))
         floor_lo = lo - np.array([1.5, 0, 1.5]) * span
@@ -74,11 +91,11 @@ class BackgroundRenderer:
             ((lo[0] - wall, lo[1], lo[2]), (lo[0], hi[1] * 0.5, hi[2]), (150, 160, 175, 255)),
             ((hi[0], lo[1], lo[2]), (hi[0] + wall, hi[1] * 0.5, hi[2]), (150, 160, 175, 255)),
         ]
-        for a, b, c in walls:
+        for a, b, c in walls if around.walls else ():
             self.scene.add(pyrender.Mesh.from_trimesh(_box(a, b, c), smooth=False))
         import trimesh
 
-        for ob in scene.obstacles:
+        for ob in around.obstacles:
             if ob.shape == "sphere":
                 m = trimesh.creation.icosphere(subdivisions=3, radius=ob.radius)
                 m.apply_translation(ob.center)
