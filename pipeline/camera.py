@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import Cameras
+from pipeline.particles import Z_UP_TO_Y_UP
 
 
 def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
@@ -95,11 +96,6 @@ def camera_for_frame(cameras: Cameras, path: str, index: int, count: int, width:
         eye = target + np.array([c.distance * math.sin(azimuth), c.height, c.distance * math.cos(azimuth)])
         return Camera(look_at(eye, target), c.fov_deg, width, height)
     raise ValueError(f"unknown camera path {path!r} (static or orbit)")
-
-
-Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-"""Rotation taking Z-up world coordinates (Blender, Houdini's Z-up scenes) to the pipeline's Y-up:
-(x, y, z) -> (x, z, -y)."""
 
 
 def camera_from_pose(cam_to_world: np.ndarray, focal_mm: float, sensor_width_mm: float, width: int,

@@ -138,11 +138,14 @@ class ParticleSource:
     """An external particle sequence used instead of a simulation."""
 
     pattern: str
-    """Glob of frame files (VTK, BGEO, PLY or XYZ), sorted by name; relative to the scene file."""
+    """Frame files: a glob or splashsurf's ``{}`` for the frame number (VTK, VTU, BGEO, PLY or XYZ),
+    ordered by frame number; relative to the scene file."""
     particle_radius: float = Field(gt=0.0)
     """Particle radius of the sequence (its units)."""
     fps: float = Field(30.0, gt=0.0)
     """Frame rate of the sequence (frames/s)."""
+    up: Literal["y", "z"] = "y"
+    """The files' up axis; Z-up data is turned to the pipeline's Y-up."""
 
 
 @dataclass(frozen=True, config=_RULES)

@@ -24,7 +24,7 @@ def sim_entry(run: Run, scene: SceneConfig) -> cache.CacheEntry:
     physics = to_dict(scene)
     physics.pop("cameras")  # cameras matter downstream only
     if scene.source is not None:
-        files = [(f, os.path.getsize(f), os.path.getmtime(f)) for f in source_files(scene)]
+        files = [(str(f), os.path.getsize(f), os.path.getmtime(f)) for f in source_files(scene)]
         config = {"scene": physics, "files": files}
     else:
         config = {"scene": physics, "simulate": to_dict(run.config.simulate), "seed": run.config.seed}
@@ -39,7 +39,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
         return entry
     entry.begin(force=force)
     if scene.source is not None:
-        extra = import_sequence(entry.dir, scene)
+        src = scene.source
+        extra = import_sequence(entry.dir, scene.name, source_files(scene), src.particle_radius, src.fps, src.up,
+                                src.pattern)
     else:
         extra = simulate_sequence(entry.dir, scene, run.config.simulate, warp_device(run.device), run.config.seed)
     entry.finish(extra.pop("files"), extra.pop("timings"), **extra)

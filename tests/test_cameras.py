@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.camera import Z_UP_TO_Y_UP, camera_from_pose, framing_cameras, read_camera_file, write_camera_file
+from pipeline.camera import camera_from_pose, framing_cameras, read_camera_file, write_camera_file
+from pipeline.particles import Z_UP_TO_Y_UP
 
 LO, HI = np.array([-0.3, 0.0, -1.2]), np.array([0.9, 0.5, 0.4])
 

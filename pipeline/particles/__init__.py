@@ -1,15 +1,31 @@
 """Particle files: one module per format, dispatched by extension.
 
-Readers return ``ParticleFrame`` (positions float32 N x 3, velocities or None); a corrupt or
-truncated file raises ``ParticleFormatError`` naming the file and what is wrong.
+Readers return ``ParticleFrame`` (positions float32 N x 3, velocities float32 N x 3 or None, radii
+float32 N or None); a corrupt, truncated or empty file raises ``ParticleFormatError`` naming the file
+and what is wrong. Formats: legacy VTK (own reader, versions 3.0 to 5.1, ASCII or binary), VTU (meshio),
+PLY (own reader, LF or CRLF), BGEO v5 (own reader, plain or gzip, also ``.bgeo.gz``), XYZ (raw float32).
+
+Point attributes are picked by name, case-insensitively: velocities from ``velocity``, ``v``, ``vel``
+or ``velocities`` (3 components), radii from ``pscale`` (Houdini), ``radius`` or ``radii`` (1 component).
+
+The pipeline is Y-up. ``read_particles(path, up="z")`` converts Z-up data by a right-handed rotation
+of -90 degrees about x: (x, y, z) -> (x, z, -y), applied to positions and velocities (radii are
+unchanged), so +z becomes +y and handedness is kept.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+READ_FORMATS = (".vtk", ".vtu", ".bgeo", ".ply", ".xyz")
+"""Extensions ``read_particles`` reads (keys of ``particle_format``)."""
+VELOCITY_NAMES = ("velocity", "v", "vel", "velocities")
+RADIUS_NAMES = ("pscale", "radius", "radii")
+UP_AXES = ("y", "z")
 
 
 class ParticleFormatError(ValueError):
@@ -21,33 +37,95 @@ class ParticleFrame:
     """One frame of particles."""
 
     positions: np.ndarray
+    """Particle centres, float32 N x 3, in the file's length unit."""
     velocities: np.ndarray | None = None
+    """Particle velocities, float32 N x 3, in the file's length unit per second; None when absent."""
+    radii: np.ndarray | None = None
+    """Per-particle radii, float32 N, in the file's length unit; None when absent."""
 
 
-def read_particles(path: str | Path) -> ParticleFrame:
-    """Read a frame from legacy VTK, BGEO (gzip v5), PLY or XYZ (raw float32)."""
-    from pipeline.particles import bgeo, ply, vtk, xyz
+def particle_format(path: str | Path) -> str:
+    """The format key of a particle file: its lower-case extension, ``.bgeo`` also for ``.bgeo.gz``."""
+    name = Path(path).name.lower()
+    return ".bgeo" if name.endswith(".bgeo.gz") else Path(name).suffix
 
+
+def frame_from_point_data(positions: np.ndarray, point_data: Mapping[str, np.ndarray]) -> ParticleFrame:
+    """A frame from positions and named point attributes, picking velocities and radii by name."""
+    by_name = {name.lower(): np.asarray(values) for name, values in point_data.items()}
+    velocities = radii = None
+    for name in VELOCITY_NAMES:
+        values = by_name.get(name)
+        if values is not None and values.ndim == 2 and values.shape[1] == 3:
+            velocities = values.astype(np.float32)
+            break
+    for name in RADIUS_NAMES:
+        values = by_name.get(name)
+        if values is not None and (values.ndim == 1 or (values.ndim == 2 and values.shape[1] == 1)):
+            radii = values.reshape(-1).astype(np.float32)
+            break
+    return ParticleFrame(np.array(positions, dtype=np.float32), velocities, radii)
+
+
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""(x, y, z) -> (x, z, -y): the right-handed -90 degree rotation about x taking +z to +y, from Z-up
+worlds (Blender, Houdini's Z-up scenes) to the pipeline's Y-up one; cameras use it too."""
+
+
+def _z_up_to_y_up(vectors: np.ndarray) -> np.ndarray:
+    """Rows of ``vectors`` rotated by ``Z_UP_TO_Y_UP`` (float32 kept)."""
+    return (vectors @ Z_UP_TO_Y_UP.T).astype(vectors.dtype)
+
+
+def _check(path: Path, frame: ParticleFrame) -> None:
+    """Raise ``ParticleFormatError`` unless the frame holds finite, consistently shaped arrays."""
+    x = frame.positions
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ParticleFormatError(f"{path}: positions have shape {x.shape}, expected N x 3")
+    if len(x) == 0:
+        raise ParticleFormatError(f"{path}: the file holds no particles")
+    if not np.isfinite(x).all():
+        raise ParticleFormatError(f"{path}: positions contain NaN or infinity")
+    if frame.velocities is not None:
+        if frame.velocities.shape != x.shape:
+            raise ParticleFormatError(f"{path}: velocities have shape {frame.velocities.shape}, "
+                                      f"expected {len(x)} x 3 like the positions")
+        if not np.isfinite(frame.velocities).all():
+            raise ParticleFormatError(f"{path}: velocities contain NaN or infinity")
+    if frame.radii is not None:
+        if frame.radii.shape != (len(x),):
+            raise ParticleFormatError(f"{path}: radii have shape {frame.radii.shape}, expected ({len(x)},)")
+        if not (np.isfinite(frame.radii).all() and (frame.radii >= 0).all()):
+            raise ParticleFormatError(f"{path}: radii contain negative values, NaN or infinity")
+
+
+def read_particles(path: str | Path, up: str = "y") -> ParticleFrame:
+    """Read a frame from legacy VTK, VTU, BGEO, PLY or XYZ; ``up="z"`` converts Z-up data to Y-up."""
+    from pipeline.particles import bgeo, ply, vtk, vtu, xyz
+
+    if up not in UP_AXES:
+        raise ValueError(f"up must be one of {', '.join(UP_AXES)}, got {up!r}")
     path = Path(path)
-    readers = {".vtk": vtk.read, ".bgeo": bgeo.read, ".ply": ply.read, ".xyz": xyz.read}
-    reader = readers.get(path.suffix.lower())
+    readers = dict(zip(READ_FORMATS, (vtk.read, vtu.read, bgeo.read, ply.read, xyz.read), strict=True))
+    reader = readers.get(particle_format(path))
     if reader is None:
         raise ParticleFormatError(f"{path}: unsupported particle format {path.suffix!r} "
-                                  f"(supported: {', '.join(readers)})")
-    if not path.exists():
+                                  f"(supported: {', '.join(readers)}, .bgeo.gz)")
+    if not path.is_file():
         raise ParticleFormatError(f"{path}: file not found")
+    if path.stat().st_size == 0:
+        raise ParticleFormatError(f"{path}: the file holds no particles (it is empty, 0 bytes)")
     try:
         frame = reader(path)
     except ParticleFormatError:
         raise
     except Exception as exc:  # any parse failure becomes a located, readable error
         raise ParticleFormatError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
-    if frame.positions.ndim != 2 or frame.positions.shape[1] != 3:
-        raise ParticleFormatError(f"{path}: positions have shape {frame.positions.shape}, expected N x 3")
-    if len(frame.positions) == 0:
-        raise ParticleFormatError(f"{path}: the file holds no particles")
-    if not np.isfinite(frame.positions).all():
-        raise ParticleFormatError(f"{path}: positions contain NaN or infinity")
+    _check(path, frame)
+    if up == "z":
+        frame.positions = _z_up_to_y_up(frame.positions)
+        if frame.velocities is not None:
+            frame.velocities = _z_up_to_y_up(frame.velocities)
     return frame
 
 

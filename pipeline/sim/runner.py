@@ -6,7 +6,6 @@ both resume after the last whole frame when a run was killed.
 
 from __future__ import annotations
 
-import glob
 import logging
 import time
 from pathlib import Path
@@ -16,6 +15,7 @@ from tqdm import tqdm
 from pipeline.config import SceneConfig, SimulateConfig
 from pipeline.frames import SequenceInfo, completed_frames, frame_name, load_frame, save_frame, write_sequence_info
 from pipeline.particles import read_particles
+from pipeline.particles.sequence import find_sequence
 from pipeline.sph import IMPORT_PADDING_RADII, WATER_DENSITY
 from pipeline.timing import Timings
 
@@ -26,33 +26,31 @@ class SimulationFailed(RuntimeError):
     """The solver blew up; the message says which scene and what to change."""
 
 
-def source_files(scene: SceneConfig) -> list[str]:
-    """The sorted frame files of an imported scene."""
-    files = sorted(glob.glob(scene.source.pattern))
-    if not files:
-        raise FileNotFoundError(f"scene {scene.name}: no files match {scene.source.pattern}")
-    return files
+def source_files(scene: SceneConfig) -> list[Path]:
+    """The frame files of an imported scene, in frame-number order (``f_2`` before ``f_10``)."""
+    return list(find_sequence(scene.source.pattern).paths)
 
 
-def import_sequence(folder: Path, scene: SceneConfig) -> dict:
-    """Copy an imported scene's frames into the folder; returns the manifest's extra fields."""
-    folder, src = Path(folder), scene.source
-    files = source_files(scene)
+def import_sequence(folder: Path, name: str, files: list[Path], radius: float, fps: float, up: str = "y",
+                    source: str = "") -> dict:
+    """Copy particle files (in this order) into the folder as frames 1, 2, ...; returns the
+    manifest's extra fields. ``up="z"`` turns Z-up data to the pipeline's Y-up."""
+    folder = Path(folder)
     timings, n_max = Timings(), 0
-    for i, f in enumerate(tqdm(files, desc=f"import {scene.name}", unit="frame"), start=1):
+    for i, f in enumerate(tqdm(files, desc=f"import {name}", unit="frame"), start=1):
         target = folder / frame_name(i)
         if target.exists():
             continue
         with timings("read"):
-            frame = read_particles(f)
+            frame = read_particles(f, up=up)
         save_frame(target, frame.positions, frame.velocities)
         n_max = max(n_max, len(frame.positions))
-    first = read_particles(files[0]).positions
-    pad = IMPORT_PADDING_RADII * src.particle_radius
-    write_sequence_info(folder, SequenceInfo(scene.name, len(files), src.particle_radius, WATER_DENSITY, src.fps,
+    first = read_particles(files[0], up=up).positions
+    pad = IMPORT_PADDING_RADII * radius
+    write_sequence_info(folder, SequenceInfo(name, len(files), radius, WATER_DENSITY, fps,
                                              tuple(float(v - pad) for v in first.min(0)),
-                                             tuple(float(v + pad) for v in first.max(0)), src.pattern))
-    log.info("import %s: %d frames from %s", scene.name, len(files), src.pattern)
+                                             tuple(float(v + pad) for v in first.max(0)), source))
+    log.info("import %s: %d frames from %s", name, len(files), source)
     return {"files": [frame_name(i) for i in range(1, len(files) + 1)], "timings": timings.as_dict(),
             "particles_max": n_max}
 
