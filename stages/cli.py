@@ -35,6 +35,14 @@ def _finish(stage: str, body) -> None:
         raise typer.Exit(code)
 
 
+def _main(stage: str, opts: StageOptions, *extra) -> None:
+    """A stage whose module has ``main(opts, *extra)``."""
+    import importlib
+
+    module = importlib.import_module(f"stages.{stage}")
+    _finish(stage, lambda: module.main(opts, *extra))
+
+
 def _each_scene(stage: str, opts: StageOptions) -> None:
     """A stage whose work is its ``ensure`` for every configured scene."""
     import importlib
@@ -64,9 +72,7 @@ def dataset(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = F
 @app.command()
 def train(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False):
     """Train the refiner on the cached dataset (resumes; more epochs continue a run)."""
-    from stages import train as stage
-
-    _finish("train", lambda: stage.main(StageOptions(config, scene, force, verify)))
+    _main("train", StageOptions(config, scene, force, verify))
 
 
 @app.command()
@@ -74,9 +80,7 @@ def ship(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = Fals
          out: Annotated[str, typer.Option(help="write refiner.pt, refiner.json and loss_curve.png here instead "
                                                "of replacing the shipped weights")] = ""):
     """Make the config's best trained checkpoint the shipped weights, with its card."""
-    from stages import ship as stage
-
-    _finish("ship", lambda: stage.main(StageOptions(config, scene, force, verify), out))
+    _main("ship", StageOptions(config, scene, force, verify), out)
 
 
 @app.command()
@@ -101,9 +105,7 @@ def render(
     preview video and a comparison video."""
     opts = StageOptions(config, scene, force, verify)
     if pattern is None:
-        from stages import render as stage
-
-        _finish("render", lambda: stage.main(opts))
+        _main("render", opts)
         return
     from stages import sequence
 
@@ -114,9 +116,7 @@ def render(
 @app.command()
 def evaluate(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False):
     """Every method against the reference surface on held-out sequences: report.md and figures."""
-    from stages import evaluate as stage
-
-    _finish("evaluate", lambda: stage.main(StageOptions(config, scene, force, verify)))
+    _main("evaluate", StageOptions(config, scene, force, verify))
 
 
 class ExportFormat(str, Enum):
@@ -128,17 +128,13 @@ class ExportFormat(str, Enum):
 def export(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False,
            format: Annotated[ExportFormat, typer.Option(help="file format")] = ExportFormat.ply):
     """PLY or legacy VTK copies of each cached particle sequence, for other tools."""
-    from stages import export as stage
-
-    _finish("export", lambda: stage.main(StageOptions(config, scene, force, verify), format.value))
+    _main("export", StageOptions(config, scene, force, verify), format.value)
 
 
 @app.command()
 def demo(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False):
     """The whole job on the small default: simulate, refine with the shipped weights, shade, write."""
-    from stages import demo as stage
-
-    _finish("demo", lambda: stage.main(StageOptions(config, scene, force, verify)))
+    _main("demo", StageOptions(config, scene, force, verify))
 
 
 class CacheAction(str, Enum):
