@@ -86,11 +86,12 @@ class SequenceRenderer:
             tiles = [label(tonemap(shaded[m].beauty, p.exposure), NAMES[m]) for m in COMPARED]
             write_png(compare[0], np.concatenate(tiles, axis=1))
 
-    def render(self, frames: list[int], load: Callable[[int], np.ndarray], radius: float,
+    def render(self, frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
                camera_at: Callable[[int], Camera]) -> list[str]:
         """Render the frames not yet done, then the videos; returns the files of the whole sequence.
 
-        ``load(frame)`` gives a frame's positions, ``camera_at(i)`` the camera of the i-th frame."""
+        ``load(frame)`` gives a frame's positions and velocities (or None), ``camera_at(i)`` the
+        camera of the i-th frame."""
         p = self.config.render
         no_fluid: list[int] = []
         write_timings = Timings()
@@ -98,7 +99,8 @@ class SequenceRenderer:
             for i, frame in enumerate(tqdm(frames, desc=f"render {self.name}", unit="frame")):
                 if self.done(frame):
                     continue
-                shaded = self.shade(load(frame), radius, camera_at(i))
+                positions, _ = load(frame)
+                shaded = self.shade(positions, radius, camera_at(i))
                 if not shaded[p.method].mask.any():
                     no_fluid.append(frame)
                 writer.submit(self.write, frame, shaded, write_timings)

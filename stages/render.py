@@ -65,7 +65,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
              " + comparison" if p.comparison else "", p.width, p.height)
     with SequenceRenderer(entry.dir, scene.name, Surroundings.of_scene(scene), run.config, run.device,
                           refiner) as renderer:
-        files = renderer.render(frames, lambda f: load_frame(sim.path(frame_name(f)))[0], info.particle_radius,
+        files = renderer.render(frames, lambda f: load_frame(sim.path(frame_name(f))), info.particle_radius,
                                 lambda i: camera_for_frame(scene.cameras, p.camera, i, len(frames), p.width,
                                                            p.height))
     per_frame = renderer.timings.per_call_ms()
