@@ -280,12 +280,31 @@ class CacheEntry:
         (self.dir / JOURNAL).unlink(missing_ok=True)
 
 
-def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str], device: str) -> CacheEntry:
+def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str], device: str,
+          module: str = "") -> CacheEntry:
     """The cache entry of ``stage`` for ``name`` given its config fields, inputs and code (the source
-    of ``stages.<stage>`` and of every project module it imports)."""
-    code = code_version(f"stages.{stage}")
+    of ``module``, by default ``stages.<stage>``, and of every project module it imports)."""
+    code = code_version(module or f"stages.{stage}")
     meta = {"config": config, "inputs": inputs, "code_version": code, "device": device}
     return CacheEntry(Path(root), stage, name, make_key(meta), meta)
+
+
+def publish(source: Path, target: Path) -> None:
+    """Make a finished cache file appear at ``target`` (a user's output folder): a hard link when
+    both are on one file system, else a copy; atomic either way."""
+    import shutil
+
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}")
+    try:
+        try:
+            os.link(source, tmp)
+        except OSError:
+            shutil.copyfile(source, tmp)
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def list_entries(root: Path) -> list[dict[str, Any]]:

@@ -117,21 +117,38 @@ def lens_of(camera: Camera, sensor_width_mm: float = 36.0) -> float:
 
 
 def framing_cameras(lo, hi, width: int, height: int, count: int, orbit: bool = False, fov_deg: float = 40.0,
-                    elevation_deg: float = 20.0, azimuth_deg: float = 30.0, margin: float = 1.08) -> list[Camera]:
-    """``count`` cameras that keep the box ``lo``..``hi`` (Y up) in view from ``elevation_deg``:
-    all at ``azimuth_deg`` or, with ``orbit``, circling the box once over the sequence."""
+                    elevation_deg: float = 20.0, azimuth_deg: float = 30.0, margin: float = 0.05) -> list[Camera]:
+    """``count`` cameras that keep the box ``lo``..``hi`` (Y up) in view from ``elevation_deg``, all
+    at ``azimuth_deg`` or, with ``orbit``, circling the box once over the sequence; each as close as
+    keeps the box's corners ``margin`` (a share of the image) inside the frame, at one distance."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    centre, reach = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)) or 1.0
-    tan_y = math.tan(math.radians(fov_deg) / 2)
-    tan_narrow = min(tan_y, tan_y * width / height)
-    distance = margin * reach / math.sin(math.atan(tan_narrow))
+    centre, reach = 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-9)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     el = math.radians(elevation_deg)
-    cameras = []
-    for i in range(count):
-        az = math.radians(azimuth_deg + (360.0 * i / count if orbit else 0.0))
+    azimuths = [math.radians(azimuth_deg + (360.0 * i / count if orbit else 0.0)) for i in range(count)]
+
+    def camera(az: float, distance: float) -> Camera:
         eye = centre + distance * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
-        cameras.append(Camera(look_at(eye, centre), fov_deg, width, height))
-    return cameras
+        return Camera(look_at(eye, centre), fov_deg, width, height)
+
+    def fits(az: float, distance: float) -> bool:
+        cam = camera(az, distance)
+        col, row, depth = cam.project(cam.to_view(corners))
+        mx, my = margin * width, margin * height
+        inside = (col >= mx) & (col <= width - mx) & (row >= my) & (row <= height - my)
+        return bool(np.all(depth > 0) and np.all(inside))
+
+    def closest(az: float) -> float:
+        near, far = reach, 2.0 * reach
+        while not fits(az, far):
+            far *= 2.0
+        for _ in range(40):  # bisection: the fitting distances are one interval [d*, inf)
+            mid = 0.5 * (near + far)
+            near, far = (near, mid) if fits(az, mid) else (mid, far)
+        return far
+
+    distance = max(closest(az) for az in azimuths)
+    return [camera(az, distance) for az in azimuths]
 
 
 def _to_y_up(up: str) -> np.ndarray:

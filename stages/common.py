@@ -65,10 +65,12 @@ def setup_logging() -> None:
 
 
 def quiet_warp() -> None:
-    """Keep Warp's banner and per-module load lines out of stage logs."""
+    """Keep Warp's banner and per-module load lines out of stage logs (Warp 1.19 reads
+    ``config.log_level``; older releases ``config.quiet``)."""
     import warp as wp
 
     wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
 
 
 def stage_main(stage: str, body: Callable[[], None]) -> int:

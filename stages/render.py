@@ -37,15 +37,15 @@ def load_refiner(run: Run):
     return load_weights(path, run.device)
 
 
-def render_entry(run: Run, scene: SceneConfig, sim_key: str, weights: str) -> cache.CacheEntry:
+def render_entry(run: Run, name: str, cameras, sim_key: str, weights: str, module: str = "") -> cache.CacheEntry:
     """Keyed on the render and filter settings, the cameras, the particles and the weights."""
     filters = to_dict(run.config.dataset)
     for key in ("frame_stride", "max_frames", "width", "height", "holdout_scenes", "validation_camera", "workers",
                 "keep_meshes"):
         filters.pop(key)
-    config = {"render": to_dict(run.config.render), "filters": filters, "cameras": to_dict(scene.cameras)}
-    return cache.entry(run.data_dir, "render", scene.name, config, {"simulate": sim_key, "weights": weights},
-                       run.device)
+    config = {"render": to_dict(run.config.render), "filters": filters, "cameras": cameras}
+    return cache.entry(run.data_dir, "render", name, config, {"simulate": sim_key, "weights": weights}, run.device,
+                       module)
 
 
 def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntry:
@@ -55,7 +55,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     info = read_sequence_info(sim.dir)
     methods = set(COMPARED if p.comparison else ()) | {p.method}
     refiner, weights = load_refiner(run) if "refined" in methods else (None, "")
-    entry = render_entry(run, scene, sim.key, weights)
+    entry = render_entry(run, scene.name, to_dict(scene.cameras), sim.key, weights)
     if entry.is_complete() and not force:
         log.info("render %s: cached (%s)", scene.name, entry.dir)
         return entry
