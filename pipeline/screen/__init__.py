@@ -120,10 +120,10 @@ class ScreenSpace:
         return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
 
     def _gaussian(self, depth: wp.array, w: int, h: int, sigma_px: float) -> wp.array:
-        radius = max(1, int(np.ceil(3.0 * sigma_px)))
         a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
-        self.launch(K.gaussian_pass, w * h, [depth, w, h, 0, sigma_px, radius, a])
-        self.launch(K.gaussian_pass, w * h, [a, w, h, 1, sigma_px, radius, b])
+        args = [1.0, 0.0, 0.0, 0.0, max(w, h), sigma_px]  # a fixed sigma and no range term
+        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, a])
+        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, b])
         return b
 
     def _bilateral(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
@@ -134,8 +134,8 @@ class ScreenSpace:
             self.launch(K.bilateral_filter, w * h, [depth, w, h, *args, out])
             return out
         a = self._buffer("pass", w * h)
-        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, a])
-        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, out])
+        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, 0.0, a])
+        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, 0.0, out])
         return out
 
     def _narrow_range(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:

@@ -139,6 +139,22 @@ def finish_splat(offset: int, depth: wp.array(dtype=float), empty: float, mask: 
 
 
 @wp.func
+def fluid_depth(depth_in: wp.array(dtype=float), depth_out: wp.array(dtype=float), idx: int) -> float:
+    """A filter's input depth at a pixel; an empty pixel (0) is passed through to the output as empty."""
+    d0 = depth_in[idx]
+    if d0 <= 0.0:
+        depth_out[idx] = 0.0
+    return d0
+
+
+@wp.func
+def pixel_of(idx: int, width: int):
+    """(column, row) of a flat pixel index."""
+    row = idx // width
+    return idx - row * width, row
+
+
+@wp.func
 def tap_stride(radius: int, max_taps: int) -> int:
     """Pixels between taps so that at most ``max_taps`` fall on each side of a pass (0: every pixel).
 
@@ -148,44 +164,6 @@ def tap_stride(radius: int, max_taps: int) -> int:
     if max_taps <= 0 or radius <= max_taps:
         return 1
     return (radius + max_taps - 1) // max_taps
-
-
-@wp.kernel
-def gaussian_pass(
-    offset: int,
-    depth_in: wp.array(dtype=float),
-    width: int,
-    height: int,
-    axis: int,
-    sigma: float,
-    radius: int,
-    depth_out: wp.array(dtype=float),
-):
-    """One separable Gaussian pass over fluid pixels only (the naive screen-space blur)."""
-    idx = wp.tid() + offset
-    d0 = depth_in[idx]
-    if d0 <= 0.0:
-        depth_out[idx] = 0.0
-        return
-    row = idx // width
-    col = idx - row * width
-    inv = 1.0 / (2.0 * sigma * sigma)
-    s = float(0.0)
-    ws = float(0.0)
-    for k in range(-radius, radius + 1):
-        x = col
-        y = row
-        if axis == 0:
-            x = col + k
-        else:
-            y = row + k
-        if x >= 0 and x < width and y >= 0 and y < height:
-            dk = depth_in[y * width + x]
-            if dk > 0.0:
-                w = wp.exp(-float(k * k) * inv)
-                s += w * dk
-                ws += w
-    depth_out[idx] = s / ws
 
 
 @wp.func
@@ -209,12 +187,10 @@ def bilateral_filter(
 ):
     """Bilateral Gaussian: spatial sigma = scale x projected particle radius, range sigma in metres."""
     idx = wp.tid() + offset
-    d0 = depth_in[idx]
+    d0 = fluid_depth(depth_in, depth_out, idx)
     if d0 <= 0.0:
-        depth_out[idx] = 0.0
         return
-    row = idx // width
-    col = idx - row * width
+    col, row = pixel_of(idx, width)
     sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
     rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
     inv_s = 1.0 / (2.0 * sigma * sigma)
@@ -248,6 +224,7 @@ def bilateral_pass(
     sigma_scale: float,
     range_sigma: float,
     max_radius: int,
+    fixed_sigma: float,
     depth_out: wp.array(dtype=float),
 ):
     """One 1D pass of the separable bilateral filter (Pham & van Vliet 2005).
@@ -255,18 +232,24 @@ def bilateral_pass(
     The same spatial sigma, radius and range sigma as ``bilateral_filter``; the range reference is
     the pixel's value in this pass's input. Two passes (x, then y) cost O(radius) per pixel instead
     of O(radius^2). Every pixel of the radius is read: sampling every k-th one made neighbouring
-    outputs average disjoint samples of the sphere bumps, and the normals 5x rougher."""
+    outputs average disjoint samples of the sphere bumps, and the normals 5x rougher.
+    With ``fixed_sigma`` > 0 and ``range_sigma`` 0 it is a plain Gaussian pass of that sigma and a
+    radius of 3 sigma over fluid pixels (the naive screen-space blur)."""
     idx = wp.tid() + offset
-    d0 = depth_in[idx]
+    d0 = fluid_depth(depth_in, depth_out, idx)
     if d0 <= 0.0:
-        depth_out[idx] = 0.0
         return
-    row = idx // width
-    col = idx - row * width
-    sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
-    rad = wp.min(int(wp.ceil(2.0 * sigma)), max_radius)
+    col, row = pixel_of(idx, width)
+    sigma = fixed_sigma
+    reach = 3.0
+    if fixed_sigma <= 0.0:
+        sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
+        reach = 2.0
+    rad = wp.min(int(wp.ceil(reach * sigma)), max_radius)
     inv_s = 1.0 / (2.0 * sigma * sigma)
-    inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
+    inv_r = float(0.0)
+    if range_sigma > 0.0:
+        inv_r = 1.0 / (2.0 * range_sigma * range_sigma)
     step = 1
     pos = col
     limit = width
@@ -329,12 +312,10 @@ def narrow_range_pass(
     a pass costs at most 2 max_taps + 1 taps at any projected particle size (0: every pixel).
     """
     idx = wp.tid() + offset
-    d0 = depth_in[idx]
+    d0 = fluid_depth(depth_in, depth_out, idx)
     if d0 <= 0.0:
-        depth_out[idx] = 0.0
         return
-    row = idx // width
-    col = idx - row * width
+    col, row = pixel_of(idx, width)
     rad = wp.min(int(wp.ceil(radius_scale * focal * particle_radius / d0)), max_radius)
     if rad < 1:
         depth_out[idx] = d0
@@ -405,12 +386,10 @@ def narrow_range_cleanup(
 ):
     """Small fixed-radius 2D narrow-range pass that removes the stripes of the separable passes."""
     idx = wp.tid() + offset
-    d0 = depth_in[idx]
+    d0 = fluid_depth(depth_in, depth_out, idx)
     if d0 <= 0.0:
-        depth_out[idx] = 0.0
         return
-    row = idx // width
-    col = idx - row * width
+    col, row = pixel_of(idx, width)
     sigma = wp.max(float(radius) / 3.0, 0.5)
     inv = 1.0 / (2.0 * sigma * sigma)
     s = d0
