@@ -385,13 +385,13 @@ def narrow_range_cleanup(
     depth_out: wp.array(dtype=float),
 ):
     """Small fixed-radius 2D narrow-range pass that removes the stripes of the separable passes."""
+    sigma = wp.max(float(radius) / 3.0, 0.5)
+    inv = 1.0 / (2.0 * sigma * sigma)
     idx = wp.tid() + offset
     d0 = fluid_depth(depth_in, depth_out, idx)
     if d0 <= 0.0:
         return
     col, row = pixel_of(idx, width)
-    sigma = wp.max(float(radius) / 3.0, 0.5)
-    inv = 1.0 / (2.0 * sigma * sigma)
     s = d0
     ws = float(1.0)
     # each offset in the upper half-plane together with its mirror image
