@@ -210,3 +210,14 @@ def write_camera_file(path: Path, cameras: list[Camera], frames: list[int], up: 
             "height": cameras[0].height if cameras else 0, "frames": entries}
     with atomic_path(Path(path)) as tmp:
         tmp.write_text(json.dumps(body, indent=1))
+
+
+def sequence_cameras(choice: str, frames: list[int], lo, hi, width: int, height: int) -> tuple[list[Camera], dict]:
+    """The camera of every frame for ``choice`` ('auto': framing the box ``lo``..``hi``, 'orbit':
+    circling it, else a camera JSON path), and the plain data that identifies them (a cache key)."""
+    if choice in ("auto", "orbit"):
+        cams = framing_cameras(lo, hi, width, height, len(frames), orbit=choice == "orbit")
+        return cams, {"kind": choice, "lo": [float(v) for v in lo], "hi": [float(v) for v in hi]}
+    cams = read_camera_file(Path(choice), frames, width, height)
+    return cams, {"kind": "file", "views": [c.view.round(9).tolist() for c in cams],
+                  "fov": [c.fov_y_deg for c in cams]}

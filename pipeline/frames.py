@@ -71,6 +71,16 @@ def load_frame(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return x, v
 
 
+def sequence_bounds(folder: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The box holding every particle of cached frames 1..count (what a camera must keep in view)."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for i in range(1, count + 1):
+        x, _ = load_frame(Path(folder) / frame_name(i))
+        if len(x):
+            lo, hi = np.minimum(lo, x.min(0)), np.maximum(hi, x.max(0))
+    return lo, hi
+
+
 def write_sequence_info(folder: Path, info: SequenceInfo) -> None:
     """Write ``sequence.json``."""
     write_json_atomic(Path(folder) / SEQUENCE_FILE, asdict(info))
@@ -95,5 +105,5 @@ def completed_frames(folder: Path, total: int) -> int:
     return k
 
 
-__all__ = ["SequenceInfo", "frame_name", "select_frames", "spread", "save_frame", "load_frame", "write_sequence_info",
-           "read_sequence_info", "completed_frames"]
+__all__ = ["SequenceInfo", "frame_name", "select_frames", "spread", "sequence_bounds", "save_frame", "load_frame",
+           "write_sequence_info", "read_sequence_info", "completed_frames"]

@@ -77,9 +77,11 @@ def test_bad_requests_are_one_line_each(tmp_path, capsys):
         (["render", pattern, "--radius", "0.01"], 2, "--out: is required"),
         (["render", pattern, "--radius", "0.01", "--out", o, "--size", "64"], 2, "--size: must be WIDTHxHEIGHT"),
         (["render", pattern, "--out", o], 2, "--radius: is required: drop_1.ply has no pscale or radius"),
-        (["render", pattern, "--radius", "0.01", "--out", o, "--up", "x"], 2, "--up: must be y or z"),
+        (["render", pattern, "--radius", "0.01", "--out", o, "--fps", "0"], 2, "--fps: must be > 0"),
         (["render", pattern, "--radius", "0.01", "--out", o, "--camera", "nope.json"], 2, "nope.json does not"),
     ]
+    assert cli.main(["render", pattern, "--radius", "0.01", "--out", o, "--up", "x"]) == 2  # a usage error
+    assert "'x' is not one of 'y', 'z'" in capsys.readouterr().err
     for argv, code, words in cases:
         capsys.readouterr()
         assert cli.main(argv) == code, argv

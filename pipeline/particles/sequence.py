@@ -26,6 +26,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.particles import READ_FORMATS, ParticleFormatError, ParticleFrame, particle_format, read_particles
 
 log = logging.getLogger(__name__)
@@ -74,6 +76,18 @@ class ParticleSequence:
     def read(self, number: int, up: str = "y") -> ParticleFrame:
         """Read frame ``number``; ``up="z"`` converts Z-up data to the pipeline's Y-up."""
         return read_particles(self.path(number), up=up)
+
+    @property
+    def name(self) -> str:
+        """A folder-safe name: the first file's name without digits and extension (``fluid_0007.vtk``
+        -> ``fluid``)."""
+        stem = re.sub(r"\d+", "", self.paths[0].name.split(".")[0])
+        return re.sub(r"[^A-Za-z0-9]+", "_", stem).strip("_") or "sequence"
+
+    def median_radius(self, up: str = "y") -> float | None:
+        """The median per-particle radius (Houdini's ``pscale``) of the first frame, if it has one."""
+        radii = self.read(self.numbers[0], up=up).radii
+        return None if radii is None or not len(radii) else float(np.median(radii))
 
     def select(self, start: int | None = None, end: int | None = None) -> ParticleSequence:
         """The frames numbered ``start`` to ``end``, both inclusive; None leaves that side open."""
