@@ -6,6 +6,7 @@ import shutil
 
 from pipeline.cache import list_entries
 from pipeline.config import load
+from stages.common import StageOptions
 
 
 def _human(n: float) -> str:
@@ -16,9 +17,9 @@ def _human(n: float) -> str:
     return f"{n:.1f} GiB"
 
 
-def main(action: str, config: str) -> None:
+def main(opts: StageOptions, action: str) -> None:
     """List (``ls``) or delete (``clean``) the cache entries under the config's ``data_dir``."""
-    root = load(config).data_dir
+    root = load(opts.config).data_dir
     rows = list_entries(root)
     if action == "ls":
         total = 0

@@ -1,10 +1,8 @@
-"""``deep-ssfr``: the command line of every stage (the make targets call it), each with ``--help``;
-``render PATTERN`` renders a user's own sequence. Failures end in one line, exit 2 or 1."""
+"""``deep-ssfr``: every stage a command with ``--help`` (the make targets call them); errors: one line."""
 
 from __future__ import annotations
 
 import importlib
-import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -16,11 +14,10 @@ from stages.common import StageOptions, make_run, stage_main
 app = typer.Typer(name="deep-ssfr", no_args_is_help=True, add_completion=False, rich_markup_mode=None,
                   help="Screen-space fluid rendering with a cGAN normal-map refiner: simulate, build the dataset, "
                        "train, render and evaluate, each cached under the config's data_dir.")
-Config = Annotated[str, typer.Option(help="pipeline YAML")]
+Config, DEFAULT_CONFIG = Annotated[str, typer.Option(help="pipeline YAML")], StageOptions.config
 Scene = Annotated[str, typer.Option(help="run only this configured scene")]
 Force = Annotated[bool, typer.Option("--force", help="recompute even if cached")]
 Verify = Annotated[bool, typer.Option("--verify", help="check cached outputs against their recorded hashes too")]
-DEFAULT_CONFIG = StageOptions.config
 STAGES = {
     "simulate": "Run PBF for each configured scene (or import its particle files) into the cache.",
     "dataset": "Screen-space inputs and reference targets of every frame and camera, as EXR.",
@@ -40,8 +37,7 @@ def _run(stage: str, opts: StageOptions, *extra, module: str = "") -> None:
         for scene in run.loaded.scenes.values():
             module.ensure(run, scene, force=run.force)
 
-    code = stage_main(stage, (lambda: module.main(opts, *extra)) if hasattr(module, "main") else each_scene)
-    if code:
+    if code := stage_main(stage, (lambda: module.main(opts, *extra)) if hasattr(module, "main") else each_scene):
         raise typer.Exit(code)
 
 
@@ -71,40 +67,44 @@ def export(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = Fa
     _run("export", StageOptions(config, scene, force, verify), format)
 
 
+@app.command()
+def refine(pattern: Annotated[str, typer.Argument(help="EXRs with the generator's input channels (a glob or {})")],
+           out: Annotated[Path, typer.Option(help="folder for the refined normal EXRs")],
+           weights: Annotated[str, typer.Option(help="'shipped' or a checkpoint")] = "shipped", force: Force = False,
+           threshold: Annotated[float, typer.Option(help="drop normals shorter than this (noise)")] = 0.5):
+    """Refine your own screen-space EXRs into refined normal EXRs (N.X N.Y N.Z, mask)."""
+    _run("refine", StageOptions(force=force), pattern, out, weights, threshold)
+
+
 @app.command("cache")
 def cache_command(action: Annotated[Literal["ls", "clean"], typer.Argument(help="list or delete the entries")],
                   config: Config = DEFAULT_CONFIG):
     """List or delete the cache entries under the config's data_dir."""
-    if code := stage_main("cache", lambda: importlib.import_module("stages.cache").main(action, config)):
-        raise typer.Exit(code)
+    _run("cache", StageOptions(config), action)
 
 
-P = "(with PATTERN)"
+def _p(text: str):  # an option of ``render PATTERN``
+    return typer.Option(help=f"{text} (with PATTERN)")
 
 
 @app.command()
 def render(
     pattern: Annotated[str | None, typer.Argument(help="particle files: a glob, or {} for the frame number "
                                                        "(out/fluid_{}.vtk); none: the config's scenes")] = None,
-    radius: Annotated[float | None, typer.Option(help=f"particle radius in the files' units {P}")] = None,
-    out: Annotated[Path | None, typer.Option(help=f"folder for frame_NNNN.exr, videos, camera.json {P}")] = None,
-    size: Annotated[str, typer.Option(help=f"image size WIDTHxHEIGHT {P}")] = "512x512",
-    frames: Annotated[str, typer.Option(help=f"frame numbers START:END, both inclusive, either optional {P}")] = ":",
-    camera: Annotated[str, typer.Option(help=f"auto (frame the sequence), orbit, or a camera JSON file {P}")] = "auto",
-    up: Annotated[Literal["y", "z"], typer.Option(help=f"the files' up axis {P}")] = "y",
-    fps: Annotated[float, typer.Option(help=f"frame rate of the sequence and its videos {P}")] = 30.0,
-    method: Annotated[Literal[METHODS], typer.Option(help=f"normal-map method {P}")] = "refined",
+    radius: Annotated[float | None, _p("particle radius in the files' units")] = None,
+    out: Annotated[Path | None, _p("folder for frame_NNNN.exr, videos, camera.json")] = None,
+    size: Annotated[str, _p("image size WIDTHxHEIGHT")] = "512x512", fps: Annotated[float, _p("frame rate")] = 30.0,
+    frames: Annotated[str, _p("frame numbers START:END, both inclusive, either optional")] = ":",
+    camera: Annotated[str, _p("auto (frame the sequence), orbit, or a camera JSON file")] = "auto",
+    up: Annotated[Literal["y", "z"], _p("the files' up axis")] = "y",
+    method: Annotated[Literal[METHODS], _p("normal-map method")] = "refined",
     config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False,
 ):
     """Render the config's scenes, or your own particle sequence (PATTERN), to EXR frames and videos."""
-    opts = StageOptions(config, scene, force, verify)
-    if pattern is None:
-        _run("render", opts)
-    else:
-        from stages.sequence import Request
+    from stages.sequence import Request
 
-        _run("render", opts, Request(pattern, radius, out, size, frames, camera, up, fps, method),
-             module="stages.sequence")
+    request = [Request(pattern, radius, out, size, frames, camera, up, fps, method)] if pattern is not None else []
+    _run("render", StageOptions(config, scene, force, verify), *request, module="stages.sequence" if request else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,7 +114,3 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

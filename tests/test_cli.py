@@ -90,3 +90,38 @@ def test_bad_requests_are_one_line_each(tmp_path, capsys):
     (tmp_path / "drop_3.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 5\n")
     assert cli.main(["render", pattern, "--radius", "0.01", "--out", str(tmp_path / "o")]) == 1
     assert "drop_3.ply" in _one_line(capsys.readouterr().err)
+
+
+def test_refine_your_own_exrs(tmp_path, ss, launch, capsys):
+    from pipeline.camera import Camera, look_at
+    from pipeline.config import DatasetConfig
+    from pipeline.exr import stack, write_exr
+    from pipeline.methods import refine
+    from pipeline.model.inference import SHIPPED_WEIGHTS, load_refiner
+    from pipeline.surface import particle_ellipsoids
+    from pipeline.views import screen_space_inputs
+
+    r, p = 0.01, DatasetConfig(width=64, height=64)
+    ax = np.arange(-0.08, 0.08 + 1e-9, 2 * r)
+    ball = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    ball = ball[np.linalg.norm(ball, axis=1) <= 0.08].astype(np.float32)
+    for f in (1, 2, 10):  # written out of name order
+        cam = Camera(look_at((0.05 * f, 0.1, 0.5), (0, 0, 0)), 40.0, 64, 64)
+        ch = screen_space_inputs(ball, r, cam, p, ss, filters=None,
+                                 ellipsoids=particle_ellipsoids(ball, r, p, launch), aniso_filters=("bilateral",))
+        write_exr(tmp_path / f"view_{f}.exr", ch)
+    assert cli.main(["refine", str(tmp_path / "view_{}.exr"), "--out", str(tmp_path / "out")]) == 0
+    refiner = load_refiner(SHIPPED_WEIGHTS)
+    from pipeline.exr import read_exr
+
+    for f in (1, 2, 10):
+        got = read_exr(tmp_path / "out" / f"view_{f}.exr")
+        n, mask = refine(refiner, read_exr(tmp_path / f"view_{f}.exr"))
+        np.testing.assert_allclose(stack(got, "N."), n, atol=1e-6)
+        assert np.array_equal(got["mask"] > 0, mask) and mask.sum() > 40
+        np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1.0, atol=1e-5)
+    write_exr(tmp_path / "bad" / "view_1.exr", {"Z": np.ones((8, 8), np.float32)})
+    capsys.readouterr()
+    assert cli.main(["refine", str(tmp_path / "bad" / "view_{}.exr"), "--out", str(tmp_path / "o2")]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert "view_1.exr" in line and "aniso_bilateral.N.X" in line, line

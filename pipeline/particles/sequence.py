@@ -143,6 +143,12 @@ def find_sequence(pattern: str | Path, start: int | None = None, end: int | None
     return sequence
 
 
+def numbered_files(pattern: str | Path) -> list[tuple[int, Path]]:
+    """(frame number, file) of every file a pattern matches (``{}``, glob or one path; any file
+    type), in frame-number order."""
+    return sorted(_match(str(pattern)))
+
+
 def parse_frame_range(text: str | None) -> tuple[int | None, int | None]:
     """``"10:20"`` -> (10, 20), ``"10:"`` -> (10, None), ``":20"``, ``"7"`` -> (7, 7), None or ``""`` -> all."""
     if text is None or not text.strip():

@@ -1,0 +1,51 @@
+"""``deep-ssfr refine PATTERN --out DIR``: refine screen-space EXRs of your own into refined normals.
+
+Each input EXR carries the generator's input channels (``pipeline.model.data``): for the shipped,
+ellipsoid-trained weights ``aniso_bilateral.N.X/Y/Z`` (filtered view-space normals), ``aniso.Z``
+(raw splat depth), ``aniso_bilateral.Z`` (filtered depth) and ``aniso.A`` (fluid mask); for
+sphere-trained weights the same without the ``aniso`` prefixes. ``deep-ssfr dataset`` writes such
+files. Each output ``DIR/<input name>`` holds ``N.X N.Y N.Z`` (refined unit normals, view space)
+and ``mask``; outputs that exist are kept unless ``--force``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from pipeline.config import ConfigError
+from pipeline.device import choose_device
+from pipeline.exr import read_exr, write_exr
+from pipeline.methods import refine
+from pipeline.model.data import input_channels
+from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
+from pipeline.particles.sequence import numbered_files
+from stages.common import StageOptions
+
+log = logging.getLogger("deep_ssfr")
+
+
+def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", threshold: float = 0.5) -> None:
+    """Refine every EXR ``pattern`` matches (in frame-number order) into ``out``."""
+    if not 0.0 <= threshold <= 1.0:
+        raise ConfigError("command line", "--threshold", f"must be between 0 and 1, got {threshold}")
+    files = [path for _, path in numbered_files(pattern) if path.suffix.lower() == ".exr"]
+    if not files:
+        raise FileNotFoundError(f"{pattern}: no EXR file matches the pattern")
+    refiner, digest = load_weights(SHIPPED_WEIGHTS if weights == "shipped" else Path(weights), choose_device())
+    names = input_channels(refiner.splat)
+    wanted = [*names.normal, names.raw, names.blurred, names.fluid]
+    start, done = time.perf_counter(), 0
+    for path in tqdm(files, desc="refine", unit="frame"):
+        target = Path(out) / path.name
+        if target.exists() and not opts.force:
+            continue
+        normals, mask = refine(refiner, read_exr(path, wanted), threshold)
+        channels = {f"N.{a}": normals[..., k] for k, a in enumerate("XYZ")}
+        write_exr(target, {**channels, "mask": mask.astype("float32")})
+        done += 1
+    log.info("refine: %d of %d frames refined with weights %s (%s, %s input) in %.1f s -> %s", done, len(files),
+             weights, digest, refiner.splat, time.perf_counter() - start, out)
