@@ -101,6 +101,7 @@ def make_key(payload: dict[str, Any]) -> str:
 
 JOURNAL = "journal.jsonl"
 _OPEN_ENTRIES: dict[Path, threading.Lock] = {}  # entries between begin() and finish(), by folder
+_HELD: set[Any] = set()  # the entry locks (filelock.FileLock) this process holds
 
 
 def _journal(target: Path) -> None:
@@ -121,7 +122,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary sibling path; on success rename it over ``target``, else delete it."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}")
+    tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}")
     try:
         yield tmp
         os.replace(tmp, target)
@@ -200,9 +201,25 @@ class CacheEntry:
     key: str
     meta: dict[str, Any]
 
+    building: Path | None = None
+    """Where a forced rebuild writes until ``finish`` swaps it in for the old entry."""
+    held: Any = None
+    """This run's lock on the entry (a ``filelock.FileLock``) between ``begin`` and ``finish``."""
+
+    @property
+    def final_dir(self) -> Path:
+        """The entry's folder (``<root>/<stage>/<name>-<key>``)."""
+        return self.root / self.stage / f"{self.name}-{self.key}"
+
     @property
     def dir(self) -> Path:
-        return self.root / self.stage / f"{self.name}-{self.key}"
+        """Where the entry's files are: the folder, or its rebuild while a forced run writes it."""
+        return self.building or self.final_dir
+
+    @property
+    def lock_path(self) -> Path:
+        """The entry's lock file, outside every stage folder (``<root>/.locks/<stage>/``)."""
+        return self.root / ".locks" / self.stage / f"{self.final_dir.name}.lock"
 
     def path(self, filename: str) -> Path:
         """Path of a file inside the entry."""
@@ -223,12 +240,24 @@ class CacheEntry:
         """The manifest of a complete entry."""
         return read_json(self.dir / MANIFEST)
 
-    def begin(self, force: bool = False) -> None:
-        """Create the folder (emptied first when forced), drop temporaries of a killed run, and
-        check the files an unfinished run recorded in its journal: a file whose size (or hash,
-        with ``--verify``) differs is deleted, so the resume redoes it."""
-        if force and self.dir.exists():
-            shutil.rmtree(self.dir)
+    def begin(self, force: bool = False, reopen: bool = False) -> bool:
+        """Claim the entry for this run and prepare its folder; False (and nothing claimed) when it
+        is complete already, perhaps finished by another run this one waited for.
+
+        One run works in an entry at a time: a lock beside the folder is held until ``finish`` (or
+        the process ends), so concurrent runs of one config wait and then find the work done. The
+        folder's temporaries of a killed run are dropped, and the files its journal recorded are
+        checked (a size or, with ``--verify``, a hash that differs is deleted, so the resume redoes
+        it). ``force`` builds a new folder beside the old one, which stays whole and readable until
+        ``finish`` swaps them; ``reopen`` claims a complete entry to add to it (more epochs)."""
+        self._lock()
+        if not force and not reopen and self.is_complete():
+            self.release()
+            return False
+        if force:
+            for old in self.final_dir.parent.glob(f"{self.final_dir.name}.new-*"):
+                shutil.rmtree(old)  # a killed forced run's half-built folder
+            self.building = self.final_dir.with_name(f"{self.final_dir.name}.new-{os.getpid()}")
         self.dir.mkdir(parents=True, exist_ok=True)
         for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
             stale.unlink()
@@ -243,6 +272,28 @@ class CacheEntry:
                 records[rec["file"]] = rec
             self._drop_damaged(records)
         _OPEN_ENTRIES[self.dir.resolve()] = threading.Lock()
+        return True
+
+    def _lock(self) -> None:
+        """Take the entry's lock, saying so when another run holds it."""
+        import filelock
+
+        self.lock_path.parent.mkdir(parents=True, exist_ok=True)
+        lock = self.held or filelock.FileLock(self.lock_path, thread_local=False)
+        try:
+            lock.acquire(timeout=0)
+        except filelock.Timeout:
+            log.info("%s %s: another run is writing %s; waiting for it", self.stage, self.name, self.final_dir)
+            lock.acquire()
+        self.held = lock
+        _HELD.add(lock)
+
+    def release(self) -> None:
+        """Give up the entry's lock (``finish`` does; a stage that stops early may)."""
+        if self.held is not None:
+            self.held.release(force=True)
+            _HELD.discard(self.held)
+            self.held = None
 
     def _drop_damaged(self, checks: dict[str, dict]) -> bool:
         """Delete (and name in the log) the recorded files that are missing or differ in size (or
@@ -278,6 +329,21 @@ class CacheEntry:
         _OPEN_ENTRIES.pop(self.dir.resolve(), None)
         write_json_atomic(self.dir / MANIFEST, payload)
         (self.dir / JOURNAL).unlink(missing_ok=True)
+        if self.building is not None:  # swap the rebuilt folder in; readers saw the old one until now
+            old = self.final_dir.with_name(f"{self.final_dir.name}.old-{os.getpid()}")
+            if self.final_dir.exists():
+                os.replace(self.final_dir, old)
+            os.replace(self.building, self.final_dir)
+            self.building = None
+            shutil.rmtree(old, ignore_errors=True)
+        self.release()
+
+
+def release_all() -> None:
+    """Give up every entry lock this process holds (a stage that failed half way holds its own)."""
+    for lock in list(_HELD):
+        lock.release(force=True)
+    _HELD.clear()
 
 
 def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str], device: str,
@@ -313,7 +379,7 @@ def list_entries(root: Path) -> list[dict[str, Any]]:
     root = Path(root)
     if not root.exists():
         return rows
-    for stage_dir in sorted(p for p in root.iterdir() if p.is_dir()):
+    for stage_dir in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
         for d in sorted(p for p in stage_dir.iterdir() if p.is_dir()):
             size = sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
             rows.append({"stage": stage_dir.name, "entry": d.name, "bytes": size,

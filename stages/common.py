@@ -102,4 +102,6 @@ def stage_main(stage: str, body: Callable[[], None]) -> int:
     except KeyboardInterrupt:
         print(f"{stage}: interrupted; finished frames are kept and a re-run resumes", file=sys.stderr)
         return 130
+    finally:
+        cache.release_all()  # a stage that stopped half way still holds its entry's lock
     return 0

@@ -34,10 +34,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     """The complete dataset entry of a scene, building what is missing."""
     sim = simulate.ensure(run, scene)
     entry = dataset_entry(run, scene, sim.key)
-    if entry.is_complete() and not force:
+    if not entry.begin(force=force):
         log.info("dataset %s: cached (%s)", scene.name, entry.dir)
         return entry
-    entry.begin(force=force)
     p = run.config.dataset
     info = read_sequence_info(sim.dir)
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)

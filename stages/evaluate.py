@@ -55,10 +55,9 @@ def main(opts: StageOptions) -> None:
     entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
                         {"evaluate": to_dict(run.config.evaluate), "render": to_dict(run.config.render)},
                         {**keys, "weights": weights}, run.device)
-    if entry.is_complete() and not run.force:
+    if not entry.begin(force=run.force):
         log.info("evaluate: cached (%s)", entry.dir / "report.md")
         return
-    entry.begin(force=run.force)
     start = time.perf_counter()
     results = [evaluate_sequence(s, run.config, refiner, methods, run.device) for s in seqs]
     table = aggregate(results, methods)

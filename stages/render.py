@@ -56,10 +56,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     methods = set(COMPARED if p.comparison else ()) | {p.method}
     refiner, weights = load_refiner(run) if "refined" in methods else (None, "")
     entry = render_entry(run, scene.name, to_dict(scene.cameras), sim.key, weights)
-    if entry.is_complete() and not force:
+    if not entry.begin(force=force):
         log.info("render %s: cached (%s)", scene.name, entry.dir)
         return entry
-    entry.begin(force=force)
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)
     log.info("render %s: %d frames, %s camera, method %s%s, %dx%d", scene.name, len(frames), p.camera, p.method,
              " + comparison" if p.comparison else "", p.width, p.height)

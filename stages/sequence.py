@@ -81,8 +81,7 @@ def main(opts: StageOptions, req: Request) -> None:
     name, files = seq.name, [(str(f), os.path.getsize(f), os.path.getmtime(f)) for f in seq.paths]
     sim = cache.entry(run.data_dir, "simulate", name, {"files": files, "radius": radius, "fps": req.fps,
                                                        "up": req.up}, {}, run.device, MODULE)
-    if run.force or not sim.is_complete():
-        sim.begin(force=run.force)
+    if sim.begin(force=run.force):
         extra = import_sequence(sim.dir, name, list(seq.paths), radius, req.fps, req.up, req.pattern)
         sim.finish(extra.pop("files"), extra.pop("timings"), **extra)
     indices = list(range(1, len(seq) + 1))
@@ -93,8 +92,7 @@ def main(opts: StageOptions, req: Request) -> None:
     cams, camera_key = sequence_cameras(req.camera, list(seq.numbers), lo - radius, hi + radius, p.width, p.height)
     refiner, weights = load_refiner(run)
     entry = render_entry(run, name, camera_key, sim.key, weights, MODULE)
-    if run.force or not entry.is_complete():
-        entry.begin(force=run.force)
+    if entry.begin(force=run.force):
         log.info("render %s: frames %d to %d (%d) of %s, %dx%d, %s camera, method %s", name, seq.numbers[0],
                  seq.numbers[-1], len(seq), req.pattern, p.width, p.height, req.camera, p.method)
         around = Surroundings(tuple(lo - IMPORT_PADDING_RADII * radius), tuple(hi + IMPORT_PADDING_RADII * radius),

@@ -34,10 +34,9 @@ def sim_entry(run: Run, scene: SceneConfig) -> cache.CacheEntry:
 def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntry:
     """The complete entry of a scene, simulating (or importing) what is missing."""
     entry = sim_entry(run, scene)
-    if entry.is_complete() and not force:
+    if not entry.begin(force=force):
         log.info("simulate %s: cached (%s)", scene.name, entry.dir)
         return entry
-    entry.begin(force=force)
     if scene.source is not None:
         src = scene.source
         extra = import_sequence(entry.dir, scene.name, source_files(scene), src.particle_radius, src.fps, src.up,

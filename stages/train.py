@@ -63,12 +63,11 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     cfg = run.config.train
     keys, train_paths, val_paths = collect(run)
     entry = train_entry(run, keys)
-    if force and entry.dir.exists():
-        entry.begin(force=True)
-    if entry.is_complete() and entry.manifest().get("epochs", 0) >= cfg.epochs:
+    entry.begin(force=force, reopen=True)  # a finished run with fewer epochs continues
+    if not force and entry.is_complete() and entry.manifest().get("epochs", 0) >= cfg.epochs:
+        entry.release()
         log.info("train: cached (%d epochs) in %s", cfg.epochs, entry.dir)
         return entry
-    entry.begin()
     best = fit(entry.dir, cfg, run.config.seed, train_paths, val_paths, run.device)
     entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=cfg.epochs,
                  best_val_mean_deg=best)

@@ -52,23 +52,34 @@ def launch():
     runner.close()
 
 
-def kill_after_writes(cmd: list[str], pattern: str, count: int = 1, env: dict | None = None) -> int:
-    """Run a stage in a subprocess and SIGKILL it right after its ``count``-th finished file whose
-    path matches ``pattern`` (the cache logs each rename at DEBUG level: an event, not a poll).
-    Returns how many matching files it had finished (fewer when it ended first)."""
+def on_writes(cmd: list[str], pattern: str, count: int, then, env: dict | None = None) -> subprocess.Popen:
+    """Run a stage in a subprocess and call ``then(proc)`` right after its ``count``-th finished file
+    whose path matches ``pattern`` (at once when ``count`` is 0; the cache logs each rename at DEBUG
+    level: an event, not a poll); the rest of its log is drained until it ends. Returns the ended
+    process, with ``proc.seen`` the number of matching files it had finished."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {}), "DEEP_SSFR_LOG": "DEBUG"}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    seen = 0
+    proc.seen, called = 0, False
+    if count == 0:
+        then(proc)
+        called = True
     for line in proc.stderr:
         _, marker, path = line.strip().partition(" wrote ")
         if marker and fnmatch.fnmatch(path, pattern):
-            seen += 1
-            if seen >= count:
-                proc.send_signal(signal.SIGKILL)
-                break
+            proc.seen += 1
+            if not called and proc.seen >= count:
+                then(proc)
+                called = True
     proc.wait()
     proc.stderr.close()
-    return seen
+    return proc
+
+
+def kill_after_writes(cmd: list[str], pattern: str, count: int = 1, env: dict | None = None) -> int:
+    """Run a stage in a subprocess and SIGKILL it right after its ``count``-th finished file whose
+    path matches ``pattern``. Returns how many matching files it had finished (fewer when it ended
+    first)."""
+    return min(on_writes(cmd, pattern, count, lambda p: p.send_signal(signal.SIGKILL), env).seen, count)
 
 
 def write_config(folder: Path, body: dict, scenes: dict[str, dict] | None = None) -> Path:
