@@ -45,9 +45,10 @@ def screen_space_inputs(positions: np.ndarray, radius: float, camera: Camera, p:
     return out
 
 
-def target_channels(mesh: SurfaceMesh, camera: Camera, launch: Launcher, device: str = "cpu",
+def target_channels(mesh: SurfaceMesh, camera: Camera, launch: Launcher, device: str | None = None,
                     timings: Timings | None = None) -> dict[str, np.ndarray]:
     """Ray-cast mesh normal, depth and mask of one view."""
+    device = device or launch.device
     t = timings or Timings()
     with t("raycast"):
         n, d, m = render_maps(mesh, camera, launch, device)
@@ -55,9 +56,10 @@ def target_channels(mesh: SurfaceMesh, camera: Camera, launch: Launcher, device:
 
 
 def raytraced_target_channels(kernels, radius: float, p: DatasetConfig, camera: Camera, ss: ScreenSpace,
-                              launch: Launcher, device: str = "cpu",
+                              launch: Launcher, device: str | None = None,
                               timings: Timings | None = None) -> dict[str, np.ndarray]:
     """The same target channels, ray-marched through the anisotropic density (no mesh)."""
+    device = device or launch.device
     t = timings or Timings()
     with t("raytrace"):
         n, d, m, _ = raytrace_maps(kernels, radius, p, camera, ss, launch, device)

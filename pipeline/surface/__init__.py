@@ -107,12 +107,14 @@ class Ellipsoids:
 
 
 def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
-                        device: str = "cpu", kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> Ellipsoids:
+                        device: str | None = None,
+                        kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> Ellipsoids:
     """Each particle's ellipsoid from the same anisotropy as the mesh target (Yu & Turk): the
     smoothed centre, and semi-axes of r times the kernel's principal scales (a full neighbourhood
     gives scale 1, so an interior particle stays a sphere of radius r, a surface one flattens).
 
     ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed."""
+    device = device or launch.device
     positions = np.asarray(positions, np.float32)
     if len(positions) == 0:
         return Ellipsoids(np.zeros((0, 3), np.float32), np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32))
@@ -163,10 +165,11 @@ def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, ve
 
 
 def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
-                device: str = "cpu", kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> SurfaceMesh:
+                device: str | None = None, kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> SurfaceMesh:
     """Anisotropic kernels -> density grid -> marching cubes -> mesh with gradient normals.
 
     ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed."""
+    device = device or launch.device
     timings = Timings()
     positions = np.asarray(positions, np.float32)
     if len(positions) == 0:
@@ -196,8 +199,9 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
 
 
 def render_maps(mesh: SurfaceMesh, camera: Camera, launch: Launcher,
-                device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                device: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ray-cast a mesh: view-space normals (H x W x 3), view depth and mask (H x W)."""
+    device = device or launch.device
     w, h = camera.width, camera.height
     if len(mesh.faces) == 0:
         return np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
@@ -215,7 +219,7 @@ def render_maps(mesh: SurfaceMesh, camera: Camera, launch: Launcher,
 
 
 def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p: DatasetConfig, camera: Camera,
-                  ss: ScreenSpace, launch: Launcher, device: str = "cpu",
+                  ss: ScreenSpace, launch: Launcher, device: str | None = None,
                   with_thickness: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Ray-march the anisotropic density of ``anisotropic_kernels``' output: view-space normals
     (H x W x 3, the analytic -grad phi), view depth, mask and (with ``with_thickness``) the length
@@ -224,6 +228,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     Each ray starts where it enters the first kernel support (a splat of the support spheres), steps
     ``raytrace_step_radii`` particle radii, and refines the first iso crossing by bisection. Only
     the kernels within the largest support of each sample are summed (a hash grid)."""
+    device = device or launch.device
     w, h = camera.width, camera.height
     centres, g, extents = kernels
     c, e = centres.numpy(), extents.numpy()
