@@ -419,6 +419,11 @@ class Config:
     """Folder of scene files, relative to the config file that sets it."""
     data_dir: str = "../data"
     """Cache root, relative to the config file that sets it."""
+    executor: Literal["local", "ray"] = "local"
+    """Where the per-frame work of dataset, render and evaluate runs: in this process, or sharded
+    over a Ray cluster (every node must see data_dir); the outputs are the same either way."""
+    ray_address: str = ""
+    """Ray cluster to join with executor 'ray' ('': start a local one on this machine)."""
     simulate: SimulateConfig = Field(default_factory=SimulateConfig)
     """Stage 1."""
     dataset: DatasetConfig = Field(default_factory=DatasetConfig)

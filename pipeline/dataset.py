@@ -8,6 +8,7 @@ records say each file's camera, frame, split and share of fluid pixels.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
@@ -21,6 +22,7 @@ from tqdm import tqdm
 from pipeline.cache import atomic_path
 from pipeline.camera import camera_for_frame
 from pipeline.config import DatasetConfig, SceneConfig
+from pipeline.executor import cluster_cpus, run_tasks, shards
 from pipeline.exr import read_exr, write_exr
 from pipeline.frames import frame_name
 from pipeline.parallel import Launcher, init_warp
@@ -44,11 +46,22 @@ class _Worker(threading.local):
 
 
 def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: list[int],
-                  load: Callable[[int], np.ndarray], radius: float, device: str) -> Timings:
+                  load: Callable[[int], np.ndarray], radius: float, device: str, executor: str = "local",
+                  address: str = "", subset: list[int] | None = None) -> Timings:
     """Write the views of every frame not yet written (a killed run resumes); returns the timings.
 
-    ``load(frame)`` gives a frame's positions; ``device`` is a Warp device."""
+    ``load(frame)`` gives a frame's positions; ``device`` is a Warp device. With ``executor='ray'``
+    the frames are cut into one shard per CPU of the cluster, each built by a Ray task; ``subset``
+    (positions in ``frames``) is what one shard builds."""
     folder = Path(folder)
+    if executor != "local":
+        shard_of = functools.partial(build_dataset, folder, scene, p, frames, load, radius, device)
+        done = run_tasks(lambda sub: shard_of(subset=sub), shards(range(len(frames)), cluster_cpus(executor)),
+                         executor, address)
+        timings = Timings()
+        for t in done:
+            timings.merge(t)
+        return timings
     workers = 1 if device != "cpu" else (p.workers or os.cpu_count() or 1)
     init_warp((screen_kernels, surface_kernels), device)  # loaded once here, not by the workers at once
     local = _Worker(device, 1 if workers > 1 else 0)
@@ -84,9 +97,10 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
 
     log.info("dataset %s: %d frames x %d cameras at %dx%d, %d workers", scene.name, len(frames), len(CAMERAS),
              p.width, p.height, workers)
-    with ThreadPoolExecutor(workers) as pool, tqdm(total=len(frames), desc=f"dataset {scene.name}",
+    todo = [(i, frames[i]) for i in (range(len(frames)) if subset is None else subset)]
+    with ThreadPoolExecutor(workers) as pool, tqdm(total=len(todo), desc=f"dataset {scene.name}",
                                                    unit="frame") as bar:
-        for fut in [pool.submit(build, i, f) for i, f in enumerate(frames)]:
+        for fut in [pool.submit(build, i, f) for i, f in todo]:
             fut.result()
             bar.update()
     return timings

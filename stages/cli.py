@@ -18,6 +18,7 @@ Config, DEFAULT_CONFIG = Annotated[str, typer.Option(help="pipeline YAML")], Sta
 Scene = Annotated[str, typer.Option(help="run only this configured scene")]
 Force = Annotated[bool, typer.Option("--force", help="recompute even if cached")]
 Verify = Annotated[bool, typer.Option("--verify", help="check cached outputs against their recorded hashes too")]
+Executor = Annotated[Literal["", "local", "ray"], typer.Option(help="frames here or on a Ray cluster ('': config)")]
 STAGES = {
     "simulate": "Run PBF for each configured scene (or import its particle files) into the cache.",
     "dataset": "Screen-space inputs and reference targets of every frame and camera, as EXR.",
@@ -42,8 +43,9 @@ def _run(stage: str, opts: StageOptions, *extra, module: str = "") -> None:
 
 
 def _stage_command(stage: str, doc: str):
-    def command(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False):
-        _run(stage, StageOptions(config, scene, force, verify))
+    def command(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False,
+                executor: Executor = ""):
+        _run(stage, StageOptions(config, scene, force, verify, executor))
 
     command.__doc__ = doc
     return command
@@ -99,12 +101,14 @@ def render(
     up: Annotated[Literal["y", "z"], _p("the files' up axis")] = "y",
     method: Annotated[Literal[METHODS], _p("normal-map method")] = "refined",
     config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False,
+    executor: Executor = "",
 ):
     """Render the config's scenes, or your own particle sequence (PATTERN), to EXR frames and videos."""
     from stages.sequence import Request
 
     request = [Request(pattern, radius, out, size, frames, camera, up, fps, method)] if pattern is not None else []
-    _run("render", StageOptions(config, scene, force, verify), *request, module="stages.sequence" if request else "")
+    _run("render", StageOptions(config, scene, force, verify, executor), *request,
+         module="stages.sequence" if request else "")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -46,10 +46,13 @@ class StageOptions:
     scene: str = ""
     force: bool = False
     verify: bool = False
+    executor: str = ""
+    """'local' or 'ray' over the config's ``executor`` ('': the config's)."""
 
 
 def make_run(opts: StageOptions, overrides: dict | None = None) -> Run:
-    """Load config and choose the device."""
+    """Load config (with ``overrides`` and the command line's executor) and choose the device."""
+    overrides = {**(overrides or {}), **({"executor": opts.executor} if opts.executor else {})}
     loaded = load(opts.config, overrides=overrides, only_scene=opts.scene or None)
     cache.VERIFY_HASHES = opts.verify
     return Run(loaded, choose_device(loaded.config.device), opts.force)

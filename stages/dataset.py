@@ -41,8 +41,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     info = read_sequence_info(sim.dir)
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)
     start = time.perf_counter()
-    timings = build_dataset(entry.dir, scene, p, frames, lambda f: load_frame(sim.path(frame_name(f)))[0],
-                            info.particle_radius, warp_device(run.device))
+    sim_dir = sim.dir  # the tasks carry a path, not the entry
+    timings = build_dataset(entry.dir, scene, p, frames, lambda f: load_frame(sim_dir / frame_name(f))[0],
+                            info.particle_radius, warp_device(run.device), run.config.executor, run.config.ray_address)
     records = manifest_records(entry.dir, frames, p.validation_camera)
     wall = time.perf_counter() - start
     entry.finish([r["file"] for r in records], timings.as_dict(), frames=records,

@@ -18,6 +18,7 @@ from pipeline.config import to_dict
 from pipeline.dataset import CAMERAS
 from pipeline.evaluate.report import write_report
 from pipeline.evaluate.sequence import HeldOut, aggregate, evaluate_sequence
+from pipeline.executor import run_tasks
 from pipeline.frames import read_sequence_info
 from pipeline.plots import evaluation_figures
 from stages import dataset, render, simulate
@@ -59,7 +60,9 @@ def main(opts: StageOptions) -> None:
         log.info("evaluate: cached (%s)", entry.dir / "report.md")
         return
     start = time.perf_counter()
-    results = [evaluate_sequence(s, run.config, refiner, methods, run.device) for s in seqs]
+    cfg, device = run.config, run.device  # a Ray task carries these, not the run
+    results = run_tasks(lambda s: evaluate_sequence(s, cfg, refiner, methods, device), seqs, cfg.executor,
+                        cfg.ray_address)
     table = aggregate(results, methods)
     evaluation_figures(entry.dir, results, table, methods)
     write_report(entry.dir, results, table, methods, weights)
