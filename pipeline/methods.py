@@ -41,22 +41,58 @@ def method_maps(method: str, channels: dict[str, np.ndarray]) -> dict[str, np.nd
             "mask": channels[f"{splat}A"], "thickness": channels[f"{splat}thickness"]}
 
 
+LAYER = "ViewLayer"
+"""The one render layer every pass of a frame belongs to (channel ``ViewLayer.<Pass>.<Channel>``)."""
+
+PASSES = {"Combined": "RGBA", "Depth": "Z", "Fluid": "RGBA", "Thickness": "X", "Mask": "X", "Normal": "XYZ",
+          "ViewNormal": "XYZ", "Vector": "XYZW"}
+"""The passes of a rendered frame and their channels, in file order (docs/compositing.md)."""
+
+HALF_PASSES = ("Combined", "Fluid", "Mask")
+"""Passes stored as half floats unless ``render.exr_half`` is 'none': colour, and the 0/1 mask (exact
+in half)."""
+
+
+def channel_names(passes: dict[str, str] = PASSES) -> list[str]:
+    """``ViewLayer.<Pass>.<Channel>`` names of the passes."""
+    return [f"{LAYER}.{name}.{c}" for name, chans in passes.items() for c in chans]
+
+
 @dataclass
 class RenderedFrame:
-    """The passes of one rendered frame (H x W [x k], linear, view space)."""
+    """The passes of one rendered frame (H x W [x k], linear; colour premultiplied by alpha)."""
 
-    beauty: np.ndarray      # RGBA
-    normals: np.ndarray     # the normal map that was shaded
-    depth: np.ndarray       # fluid view depth, 0 where no fluid
-    thickness: np.ndarray
-    mask: np.ndarray        # pixels the method calls fluid
+    beauty: np.ndarray         # RGBA: the fluid over the background (alpha 1) or over nothing
+    fluid: np.ndarray          # RGBA: the fluid alone (0 where it is hidden or absent)
+    depth: np.ndarray          # view depth of the nearest surface (m), +inf where there is none
+    normals: np.ndarray        # the shaded unit normals in view space, 0 outside the fluid
+    normals_world: np.ndarray  # the same in world space
+    thickness: np.ndarray      # fluid thickness along the view ray (m)
+    mask: np.ndarray           # pixels the method calls fluid (before the depth test)
+    motion: np.ndarray | None = None  # H x W x 4 screen motion (pipeline.screen.motion), None: 0
+
+    def passes(self) -> dict[str, np.ndarray]:
+        """Each pass of ``PASSES`` as an H x W x k array."""
+        h, w = self.depth.shape
+        motion = self.motion if self.motion is not None else np.zeros((h, w, 4), np.float32)
+        return {"Combined": self.beauty, "Depth": self.depth[..., None], "Fluid": self.fluid,
+                "Thickness": self.thickness[..., None], "Mask": self.mask[..., None], "Normal": self.normals_world,
+                "ViewNormal": self.normals, "Vector": motion}
 
     def channels(self) -> dict[str, np.ndarray]:
-        """EXR channels named the Blender/Nuke way."""
-        out = {c: self.beauty[..., k] for k, c in enumerate("RGBA")}
-        out.update({f"N.{a}": self.normals[..., k] for k, a in enumerate("XYZ")})
-        out.update({"Z": self.depth, "thickness": self.thickness, "mask": self.mask})
-        return out
+        """EXR channels named ``ViewLayer.<Pass>.<Channel>``, which Blender reads as one render
+        layer with every pass and Nuke as one layer per pass (docs/compositing.md)."""
+        return {f"{LAYER}.{name}.{c}": data[..., k] for name, data in self.passes().items()
+                for k, c in enumerate(PASSES[name])}
+
+    @staticmethod
+    def half_channels(which: str) -> tuple[str, ...]:
+        """Channel names stored as half floats for ``render.exr_half`` ('none', 'colour', 'all')."""
+        if which == "all":
+            return tuple(channel_names())
+        if which == "colour":
+            return tuple(channel_names({k: PASSES[k] for k in HALF_PASSES}))
+        return ()
 
 
 def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
@@ -129,9 +165,44 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
 
 def shade_frame(source: dict[str, np.ndarray], background: np.ndarray, background_depth: np.ndarray,
                 camera: Camera, p: RenderConfig, shader: Shader, timings: Timings | None = None) -> RenderedFrame:
-    """Deferred shading of a normal source over the background."""
+    """Deferred shading of a normal source over the background (``p.background`` 'scene') or over
+    nothing ('none': pass a background of the environment alone and a background depth of 0)."""
     t = timings or Timings()
     with t("shading"):
-        beauty = shader.shade(source["normals"], source["depth"], source["thickness"], source["mask"], background,
-                              background_depth, camera, p)
-    return RenderedFrame(beauty, source["normals"], source["depth"], source["thickness"], source["mask"])
+        out = shader.shade(source["normals"], source["depth"], source["thickness"], source["mask"], background,
+                           background_depth, camera, p)
+    return RenderedFrame(out.beauty, out.fluid, out.depth, out.normals_view, out.normals_world, source["thickness"],
+                         np.asarray(source["mask"], np.float32))
+
+
+RIM_FILL_STEPS = 16
+"""Rings of pixels a visible fluid pixel that no particle sphere covered may lie from a covered one
+and still take its motion (beyond: 0)."""
+
+
+def motion_pass(fluid_alpha: np.ndarray, fluid_motion: np.ndarray, covered: np.ndarray,
+                background_motion: np.ndarray | None = None) -> np.ndarray:
+    """H x W x 4 motion of what each pixel shows: the particles' motion where the fluid is visible
+    (a visible pixel no sphere covered, e.g. at an ellipsoid's or the mesh's rim, takes a covered
+    neighbour's, ring by ring), the camera-induced motion of the background elsewhere (or 0)."""
+    visible = fluid_alpha > 0
+    motion = np.zeros(fluid_motion.shape, np.float32) if background_motion is None else background_motion.copy()
+    if not visible.any():
+        return motion
+    holes = np.argwhere(visible & ~covered)
+    if len(holes) and covered.any():
+        fluid_motion, covered = fluid_motion.copy(), covered.copy()
+        h, w = covered.shape
+        for _ in range(RIM_FILL_STEPS):  # grow the covered pixels into the holes, one ring per step
+            filled = np.zeros(len(holes), bool)
+            for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+                r, c = np.clip(holes[:, 0] + dr, 0, h - 1), np.clip(holes[:, 1] + dc, 0, w - 1)
+                take = ~filled & covered[r, c]
+                fluid_motion[holes[take, 0], holes[take, 1]] = fluid_motion[r[take], c[take]]
+                filled |= take
+            covered[holes[filled, 0], holes[filled, 1]] = True
+            holes = holes[~filled]
+            if not len(holes) or not filled.any():
+                break
+    motion[visible] = fluid_motion[visible]
+    return motion

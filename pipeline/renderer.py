@@ -1,6 +1,7 @@
 """A particle sequence to shaded EXR frames, previews, a video and a side-by-side comparison.
 
-Into one folder: ``frames/frame_0001.exr`` (the passes of ``methods.RenderedFrame``),
+Into one folder: ``frames/frame_0001.exr`` (the passes of ``methods.RenderedFrame`` named
+``ViewLayer.<Pass>.<Channel>``, the camera in the header: docs/compositing.md),
 ``preview/frame_0001.png``, ``<name>_<method>.mp4`` and, with ``render.comparison``,
 ``compare/frame_0001.png``, ``<name>_comparison.mp4`` and ``<name>_comparison_sheet.png``
 (bilateral | narrow-range | refined | mesh). A frame counts as done when all its files exist, so
@@ -19,12 +20,13 @@ from tqdm import tqdm
 from pipeline.camera import Camera
 from pipeline.config import Config
 from pipeline.device import warp_device
-from pipeline.exr import write_exr
+from pipeline.exr import camera_attributes, write_exr
 from pipeline.frames import frame_name, spread
 from pipeline.media import contact_sheet, label, write_png, write_video
-from pipeline.methods import NAMES, RenderedFrame, normal_source, shade_frame
+from pipeline.methods import NAMES, RenderedFrame, motion_pass, normal_source, shade_frame
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
+from pipeline.screen.motion import camera_motion, particle_motion
 from pipeline.shading import Shader, load_environment, tonemap
 from pipeline.shading.background import BackgroundRenderer, Surroundings
 from pipeline.timing import Timings
@@ -48,7 +50,7 @@ class SequenceRenderer:
         wdev = warp_device(device)
         self.ss, self.launch = ScreenSpace(wdev), Launcher(wdev)
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
-        self.background = BackgroundRenderer(around, p, p.width, p.height)
+        self.background = BackgroundRenderer(around, p, p.width, p.height) if p.background == "scene" else None
         self.timings = Timings()
 
     def outputs(self, frame: int) -> list[str]:
@@ -64,7 +66,11 @@ class SequenceRenderer:
         """Every method's rendered passes of one frame (the main method timed)."""
         p = self.config.render
         with self.timings("background"):
-            bg, bg_depth = self.background.render(camera)
+            h, w = p.height, p.width
+            if self.background is not None:
+                bg, bg_depth = self.background.render(camera)
+            else:  # nothing behind the fluid: it refracts the environment alone
+                bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
             bg = self.shader.fill_sky(bg, bg_depth, camera, p)
         shaded, frame_cache = {}, {}
         for method in self.methods:
@@ -74,36 +80,63 @@ class SequenceRenderer:
             shaded[method] = shade_frame(src, bg, bg_depth, camera, p, self.shader, t)
         return shaded
 
-    def write(self, frame: int, shaded: dict[str, RenderedFrame], timings: Timings) -> None:
+    def motion(self, frame: RenderedFrame, positions: np.ndarray, velocities: np.ndarray | None, radius: float,
+               camera: Camera, fps: float, prev: tuple[Camera, int] | None, nxt: tuple[Camera, int] | None) -> None:
+        """Fill ``frame.motion``: the particles' screen motion where the fluid shows, the camera's
+        elsewhere (``prev``/``nxt``: the neighbouring rendered frames' cameras and frame gaps)."""
+        with self.timings("motion"):
+            per_particle = particle_motion(positions, velocities, camera, fps, prev, nxt)
+            visible = frame.fluid[..., 3] > 0
+            fluid_motion, covered = self.ss.motion(positions, per_particle, radius, camera,
+                                                   np.where(visible, frame.depth, 0.0))
+            frame.motion = motion_pass(frame.fluid[..., 3], fluid_motion, covered,
+                                       camera_motion(frame.depth, camera, prev, nxt))
+
+    def write(self, frame: int, camera: Camera, fps: float, shaded: dict[str, RenderedFrame],
+              timings: Timings) -> None:
         """The EXR, preview and comparison of one frame (on the writer thread)."""
         p = self.config.render
         main = shaded[p.method]
         exr, preview, *compare = (self.folder / o for o in self.outputs(frame))
         with timings("exr_write"):
-            write_exr(exr, main.channels())
+            write_exr(exr, main.channels(), half=main.half_channels(p.exr_half), compression=p.exr_compression,
+                      attributes=camera_attributes(camera, fps, p.sensor_width_mm, frame))
         write_png(preview, tonemap(main.beauty, p.exposure))
         if compare:
             tiles = [label(tonemap(shaded[m].beauty, p.exposure), NAMES[m]) for m in COMPARED]
             write_png(compare[0], np.concatenate(tiles, axis=1))
 
     def render(self, frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
-               camera_at: Callable[[int], Camera]) -> list[str]:
+               camera_at: Callable[[int], Camera], fps: float | None = None) -> list[str]:
         """Render the frames not yet done, then the videos; returns the files of the whole sequence.
 
-        ``load(frame)`` gives a frame's positions and velocities (or None), ``camera_at(i)`` the
-        camera of the i-th frame."""
+        ``load(frame)`` gives a frame's positions and velocities (m/s, or None), ``camera_at(i)``
+        the camera of the i-th frame, ``fps`` the sequence's frames per second, which turns
+        velocities into motion vectors in pixels per frame (default ``render.video_fps``)."""
         p = self.config.render
+        fps = fps or p.video_fps
         no_fluid: list[int] = []
+        no_velocity = False
         write_timings = Timings()
         with BackgroundWriter() as writer:
             for i, frame in enumerate(tqdm(frames, desc=f"render {self.name}", unit="frame")):
                 if self.done(frame):
                     continue
-                positions, _ = load(frame)
-                shaded = self.shade(positions, radius, camera_at(i))
-                if not shaded[p.method].mask.any():
+                positions, velocities = load(frame)
+                camera = camera_at(i)
+                shaded = self.shade(positions, radius, camera)
+                main = shaded[p.method]
+                if not main.mask.any():
                     no_fluid.append(frame)
-                writer.submit(self.write, frame, shaded, write_timings)
+                if p.motion_vectors:
+                    if velocities is None and len(positions) and not no_velocity:
+                        no_velocity = True
+                        log.warning("render %s: frame %d has no particle velocities; its motion vectors show "
+                                    "only the camera's motion (0 for a still camera)", self.name, frame)
+                    prev = (camera_at(i - 1), frame - frames[i - 1]) if i > 0 else None
+                    nxt = (camera_at(i + 1), frames[i + 1] - frame) if i + 1 < len(frames) else None
+                    self.motion(main, positions, velocities, radius, camera, fps, prev, nxt)
+                writer.submit(self.write, frame, camera, fps, shaded, write_timings)
         self.timings.merge(write_timings)
         if no_fluid:
             log.warning("render %s: the camera sees no fluid in %d frames (first: %d); they show the background "
@@ -127,7 +160,8 @@ class SequenceRenderer:
 
     def close(self) -> None:
         """Release the rasteriser and device buffers."""
-        self.background.close()
+        if self.background is not None:
+            self.background.close()
         self.ss.close()
         self.launch.close()
         self.shader.close()

@@ -85,28 +85,27 @@ def cache_command(action: Annotated[Literal["ls", "clean"], typer.Argument(help=
     _run("cache", StageOptions(config), action)
 
 
-def _p(text: str):  # an option of ``render PATTERN``
-    return typer.Option(help=f"{text} (with PATTERN)")
-
-
 @app.command()
 def render(
     pattern: Annotated[str | None, typer.Argument(help="particle files: a glob, or {} for the frame number "
                                                        "(out/fluid_{}.vtk); none: the config's scenes")] = None,
-    radius: Annotated[float | None, _p("particle radius in the files' units")] = None,
-    out: Annotated[Path | None, _p("folder for frame_NNNN.exr, videos, camera.json")] = None,
-    size: Annotated[str, _p("image size WIDTHxHEIGHT")] = "512x512", fps: Annotated[float, _p("frame rate")] = 30.0,
-    frames: Annotated[str, _p("frame numbers START:END, both inclusive, either optional")] = ":",
-    camera: Annotated[str, _p("auto (frame the sequence), orbit, or a camera JSON file")] = "auto",
-    up: Annotated[Literal["y", "z"], _p("the files' up axis")] = "y",
-    method: Annotated[Literal[METHODS], _p("normal-map method")] = "refined",
+    radius: Annotated[float | None, typer.Option(help="PATTERN: particle radius in the files' units")] = None,
+    out: Annotated[Path | None, typer.Option(help="PATTERN: folder for frame_NNNN.exr, videos, camera.json")] = None,
+    size: Annotated[str, typer.Option(help="PATTERN: image size WIDTHxHEIGHT")] = "512x512",
+    fps: Annotated[float, typer.Option(help="PATTERN: frames per second")] = 30.0,
+    frames: Annotated[str, typer.Option(help="PATTERN: frame numbers START:END, inclusive, either optional")] = ":",
+    camera: Annotated[str, typer.Option(help="PATTERN: auto (frame the sequence), orbit, or a camera JSON")] = "auto",
+    up: Annotated[Literal["y", "z"], typer.Option(help="PATTERN: the files' up axis")] = "y",
+    method: Annotated[Literal[METHODS], typer.Option(help="PATTERN: normal-map method")] = "refined",
+    background: Annotated[Literal["scene", "none"], typer.Option(help="PATTERN: 'none': fluid over transparent "
+                                                                      "black")] = "scene",
     config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False,
     executor: Executor = "",
 ):
     """Render the config's scenes, or your own particle sequence (PATTERN), to EXR frames and videos."""
     from stages.sequence import Request
 
-    request = [Request(pattern, radius, out, size, frames, camera, up, fps, method)] if pattern is not None else []
+    request = [Request(pattern, radius, out, size, frames, camera, up, fps, method, background)] if pattern else []
     _run("render", StageOptions(config, scene, force, verify, executor), *request,
          module="stages.sequence" if request else "")
 

@@ -66,7 +66,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
                           refiner) as renderer:
         files = renderer.render(frames, lambda f: load_frame(sim.path(frame_name(f))), info.particle_radius,
                                 lambda i: camera_for_frame(scene.cameras, p.camera, i, len(frames), p.width,
-                                                           p.height))
+                                                           p.height), fps=info.fps / p.frame_stride)
     per_frame = renderer.timings.per_call_ms()
     entry.finish(files, renderer.timings.as_dict(), ms_per_frame=per_frame, frames=len(frames), weights=weights)
     log.info("render %s: %d frames -> %s (%s)", scene.name, len(frames), entry.dir,

@@ -46,6 +46,7 @@ class Request:
     up: str = "y"
     fps: float = 30.0
     method: str = "refined"
+    background: str = "scene"
 
 
 def _loaded(opts: StageOptions, req: Request) -> Loaded:
@@ -63,7 +64,8 @@ def _loaded(opts: StageOptions, req: Request) -> Loaded:
     config = load(opts.config).config if Path(opts.config).exists() or opts.config != StageOptions.config \
         else Config(scenes=())
     render = dataclasses.replace(config.render, width=int(size[1]), height=int(size[2]), method=req.method,
-                                 video_fps=req.fps, frame_stride=1, max_frames=0, comparison=True)
+                                 video_fps=req.fps, frame_stride=1, max_frames=0, comparison=True,
+                                 background=req.background)
     root = Path(req.out) / ".cache"
     return Loaded(dataclasses.replace(config, render=render, data_dir=str(root)), {}, Path(opts.config), root)
 

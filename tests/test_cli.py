@@ -49,7 +49,7 @@ def test_render_a_users_sequence_in_one_command(tmp_path, capsys):
     centres = []
     for name in exrs:
         ch = read_exr(out / name)
-        cols = np.nonzero(ch["A"] > 0)[1]
+        cols = np.nonzero(ch["ViewLayer.Fluid.A"] > 0)[1]
         assert cols.size > 20
         centres.append(cols.mean())
     assert np.all(np.diff(centres) > 0), centres
@@ -61,7 +61,15 @@ def test_render_a_users_sequence_in_one_command(tmp_path, capsys):
     assert cli.main([*argv[:5], str(again), "--size", "64x64", "--frames", ":5", "--camera",
                      str(out / "camera.json")]) == 0
     for name in exrs:
-        np.testing.assert_allclose(read_exr(again / name)["A"], read_exr(out / name)["A"])
+        alpha = "ViewLayer.Fluid.A"
+        np.testing.assert_allclose(read_exr(again / name)[alpha], read_exr(out / name)[alpha])
+
+    # fluid over transparent black: premultiplied colour is 0 wherever alpha is
+    clear = tmp_path / "clear"
+    assert cli.main([*argv[:5], str(clear), "--size", "64x64", "--frames", "3", "--background", "none"]) == 0
+    ch = read_exr(clear / "frame_0003.exr")
+    alpha, rgb = ch["ViewLayer.Combined.A"], np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"])
+    assert 0 < (alpha > 0).mean() < 1 and np.all(rgb[:, alpha == 0] == 0)
 
     # a second run finds everything cached: nothing rendered again
     before = {p: p.stat().st_mtime_ns for p in (out / ".cache" / "render").rglob("*.exr")}

@@ -75,8 +75,8 @@ def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch)
         (entry,) = [e for e in (tmp_path / "data" / "render").iterdir() if e.name not in frames.values()]
         frames[device] = entry.name
     ch = {d: read_exr(tmp_path / "data" / "render" / name / "frames" / "frame_0002.exr") for d, name in frames.items()}
-    fluid = (ch["cpu"]["mask"] > 0) & (ch["cuda"]["mask"] > 0)
+    fluid = (ch["cpu"]["ViewLayer.Mask.X"] > 0) & (ch["cuda"]["ViewLayer.Mask.X"] > 0)
     assert fluid.sum() > 50
-    n_cpu, n_gpu = stack(ch["cpu"], "N.")[fluid], stack(ch["cuda"], "N.")[fluid]
+    n_cpu, n_gpu = stack(ch["cpu"], "ViewLayer.ViewNormal.")[fluid], stack(ch["cuda"], "ViewLayer.ViewNormal.")[fluid]
     angle = np.degrees(np.arccos(np.clip(np.sum(n_cpu * n_gpu, -1), -1, 1)))
     assert np.median(angle) < 1.0

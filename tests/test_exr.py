@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
@@ -34,3 +36,72 @@ def test_missing_channel_is_named(tmp_path):
     write_exr(tmp_path / "f.exr", {"Z": np.ones((4, 4), np.float32)})
     with pytest.raises(CacheError, match="N.X"):
         read_exr(tmp_path / "f.exr", ["N.X"])
+
+
+def test_half_channels_and_lossless_compressions(tmp_path):
+    rng = np.random.default_rng(1)
+    channels = {n: rng.normal(size=(20, 30)).astype(np.float32) for n in ("L.C.R", "L.C.A", "L.D.Z", "L.N.Y")}
+    for compression in ("zip", "piz", "none"):
+        write_exr(tmp_path / f"{compression}.exr", channels, half=("L.C.R", "L.C.A"), compression=compression)
+        back = read_exr(tmp_path / f"{compression}.exr")
+        for n in ("L.D.Z", "L.N.Y"):
+            np.testing.assert_array_equal(back[n], channels[n])
+        np.testing.assert_array_equal(back["L.C.R"], channels["L.C.R"].astype(np.float16))
+    with pytest.raises(ValueError, match="jpeg"):
+        write_exr(tmp_path / "x.exr", channels, compression="jpeg")
+
+
+def test_dwaa_is_lossy_only_on_colour_and_y_named_channels(tmp_path):
+    """Why ``render.exr_compression: dwaa`` is for review copies: the Y of a data pass loses precision."""
+    rng = np.random.default_rng(2)
+    smooth = np.cumsum(rng.normal(size=(64, 64)), axis=1).astype(np.float32) / 8
+    channels = {"L.N.X": smooth, "L.N.Y": smooth, "L.C.R": smooth, "L.C.A": smooth}
+    write_exr(tmp_path / "dwaa.exr", channels, compression="dwaa")
+    back = read_exr(tmp_path / "dwaa.exr")
+    np.testing.assert_array_equal(back["L.N.X"], smooth)
+    np.testing.assert_array_equal(back["L.C.A"], smooth)
+    assert np.abs(back["L.N.Y"] - smooth).max() > 1e-4 and np.abs(back["L.C.R"] - smooth).max() > 1e-4
+
+
+def test_camera_header_attributes_round_trip(tmp_path):
+    from pipeline.camera import Camera, look_at
+    from pipeline.exr import camera_attributes, read_exr_header
+
+    cam = Camera(look_at((1.0, 2.0, 3.0), (0.2, 0.1, -0.5)), 35.0, 48, 32)
+    write_exr(tmp_path / "f.exr", {"Z": np.ones((32, 48), np.float32)},
+              attributes=camera_attributes(cam, 29.97, sensor_width_mm=36.0, frame=12))
+    header = read_exr_header(tmp_path / "f.exr")
+    # Imath multiplies row vectors: p' = p M; camera space +Z looks ahead (RenderMan)
+    point = np.array([0.3, 0.4, -0.2])
+    in_camera = np.append(point, 1.0) @ header["worldToCamera"]
+    np.testing.assert_allclose(in_camera[:3], cam.to_view(point[None])[0] * [1, 1, -1], atol=1e-5)
+    ndc = np.append(point, 1.0) @ header["worldToNDC"]
+    col, row, d = cam.project(cam.to_view(point[None]))
+    np.testing.assert_allclose(ndc[:3] / ndc[3], [col[0] / 48, row[0] / 32, 1 / d[0]], rtol=1e-5)
+    # landscape: the 36 mm spans the width; 35 degrees vertical over 24 mm
+    np.testing.assert_allclose(header["sensorOverallDimensions"], [36.0, 24.0])
+    assert header["pinholeFocalLength"] == pytest.approx(12.0 / np.tan(np.radians(17.5)), rel=1e-6)
+    assert header["framesPerSecond"] == Fraction(2997, 100) and header["imageCounter"] == 12
+
+
+def test_openimageio_reads_names_values_and_camera(tmp_path):
+    """A second, independent reader: OpenImageIO (PyPI wheel) sees the same channels and matrices."""
+    oiio = pytest.importorskip("OpenImageIO")
+    from pipeline.camera import Camera, look_at
+    from pipeline.exr import camera_attributes
+
+    rng = np.random.default_rng(3)
+    names = ["ViewLayer.Combined.R", "ViewLayer.Combined.A", "ViewLayer.Depth.Z", "ViewLayer.Vector.W"]
+    channels = {n: rng.normal(size=(8, 12)).astype(np.float32) for n in names}
+    channels["ViewLayer.Depth.Z"][0, 0] = np.inf
+    cam = Camera(look_at((0.0, 1.0, 4.0), (0.0, 0.0, 0.0)), 50.0, 12, 8)
+    write_exr(tmp_path / "f.exr", channels, half=("ViewLayer.Combined.R",), attributes=camera_attributes(cam))
+    buf = oiio.ImageBuf(str(tmp_path / "f.exr"))
+    spec = buf.spec()
+    pixels = buf.get_pixels(oiio.FLOAT)
+    for k, name in enumerate(spec.channelnames):
+        expected = channels[name].astype(np.float16) if name.endswith("R") else channels[name]
+        np.testing.assert_array_equal(pixels[..., k], expected.astype(np.float32), err_msg=name)
+    assert sorted(spec.channelnames) == sorted(names)
+    np.testing.assert_allclose(np.asarray(spec.getattribute("worldToCamera")).reshape(4, 4),
+                               (np.diag([1.0, 1.0, -1.0, 1.0]) @ cam.view).T, atol=1e-6)

@@ -9,8 +9,9 @@ import torch
 import yaml
 
 from pipeline.config import TrainConfig
-from pipeline.exr import read_exr
+from pipeline.exr import read_exr, read_exr_header, stack
 from pipeline.media import count_video_frames
+from pipeline.methods import channel_names
 from pipeline.model.trainer import Refiner
 from stages import cli
 from tests.conftest import ROOT
@@ -52,15 +53,20 @@ def test_render_writes_named_exr_sequence_video_and_comparison(tmp_path):
     exrs = sorted((entry / "frames").glob("*.exr"))
     assert [p.name for p in exrs] == ["frame_0001.exr", "frame_0003.exr"]
     ch = read_exr(exrs[-1])
-    assert set(ch) == {"R", "G", "B", "A", "N.X", "N.Y", "N.Z", "Z", "thickness", "mask"}
-    assert ch["R"].shape == (64, 64) and np.isfinite(ch["R"]).all()
-    assert ch["A"].max() == 1.0 and ch["A"].min() == 0.0, "fluid over a visible background"
+    assert set(ch) == set(channel_names())
+    beauty = stack(ch, "ViewLayer.Combined.", "RGBA")
+    assert beauty.shape == (64, 64, 4) and np.isfinite(beauty).all() and (beauty[..., 3] == 1).all()
+    fluid_alpha = ch["ViewLayer.Fluid.A"]
+    assert fluid_alpha.max() == 1.0 and fluid_alpha.min() == 0.0, "fluid over a visible background"
+    assert (ch["ViewLayer.Depth.Z"] > 0).all()
+    assert np.abs(stack(ch, "ViewLayer.Vector.", "XYZW")[fluid_alpha > 0]).max() > 0, "the fluid moves"
+    assert "worldToCamera" in read_exr_header(exrs[-1])
     assert count_video_frames(entry / "dam_break_refined.mp4") == 2
     assert count_video_frames(entry / "dam_break_comparison.mp4") == 2
     assert len(list((entry / "preview").glob("*.png"))) == 2
     assert (entry / "dam_break_comparison_sheet.png").exists()
     manifest = json.loads((entry / "manifest.json").read_text())
-    assert {"inputs", "refiner", "shading", "exr_write"} <= set(manifest["ms_per_frame"])
+    assert {"inputs", "refiner", "shading", "motion", "exr_write"} <= set(manifest["ms_per_frame"])
 
 
 def test_missing_model_is_a_clear_error(tmp_path, capsys):
@@ -102,7 +108,8 @@ def test_an_empty_particle_frame_renders_background_and_the_rest_render(tmp_path
     (entry,) = (tmp_path / "data" / "render").iterdir()
     first = read_exr(entry / "frames" / "frame_0001.exr")
     empty = read_exr(entry / "frames" / "frame_0003.exr")
-    assert first["A"].any() and not empty["A"].any() and np.isfinite(empty["R"]).all()
+    assert first["ViewLayer.Fluid.A"].any() and not empty["ViewLayer.Fluid.A"].any()
+    assert np.isfinite(empty["ViewLayer.Combined.R"]).all()
 
 
 def test_evaluate_smoke(tmp_path):
@@ -141,9 +148,9 @@ def test_render_with_ellipsoid_splats(tmp_path):
     assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     (entry,) = (tmp_path / "data" / "render").iterdir()
     ch = read_exr(entry / "frames" / "frame_0003.exr")
-    fluid = ch["mask"] > 0
-    assert fluid.any() and (ch["Z"][fluid] > 0).all()
-    n = np.stack([ch[f"N.{a}"] for a in "XYZ"], -1)[fluid]
+    fluid = ch["ViewLayer.Fluid.A"] > 0
+    assert fluid.any() and (ch["ViewLayer.Depth.Z"][fluid] > 0).all()
+    n = stack(ch, "ViewLayer.ViewNormal.")[fluid]
     np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
     assert "anisotropy" in json.loads((entry / "manifest.json").read_text())["ms_per_frame"]
 
@@ -157,5 +164,5 @@ def test_refiner_trained_on_ellipsoid_splats_renders_from_them(tmp_path):
         config = _config(tmp_path / splat, _tiny_checkpoint(tmp_path, splat), comparison=False, normal_threshold=0.0)
         assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
         (entry,) = (tmp_path / splat / "data" / "render").iterdir()
-        results[splat] = read_exr(entry / "frames" / "frame_0003.exr")["mask"]
+        results[splat] = read_exr(entry / "frames" / "frame_0003.exr")["ViewLayer.Mask.X"]
     assert results["ellipsoid"].sum() != results["sphere"].sum()

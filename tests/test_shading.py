@@ -1,4 +1,5 @@
-"""Deferred shading against closed-form values, and the compositing rules."""
+"""Deferred shading against closed-form values, and the compositing rules (premultiplied alpha,
+depth of the nearest surface, Snell refraction, normals bent towards the viewer, environment maps)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import RenderConfig
-from pipeline.shading import Shader, fresnel_f0
+from pipeline.shading import Shader, fresnel_f0, load_environment
 
 SIZE = 33  # odd: the centre pixel looks exactly down -Z
 C = SIZE // 2
@@ -30,7 +31,7 @@ def _shade(shader, p, background=None, background_depth=None, **kw):
     n, d, t, m = _buffers(**kw)
     bg = np.zeros((SIZE, SIZE, 3), np.float32) if background is None else background
     bgd = np.zeros((SIZE, SIZE), np.float32) if background_depth is None else background_depth
-    return shader.shade(n, d, t, m, bg, bgd, _camera(), p)
+    return shader.shade(n, d, t, m, bg, bgd, _camera(), p).beauty
 
 
 @pytest.fixture(scope="module")
@@ -70,12 +71,12 @@ def test_zero_thickness_leaves_the_background_unchanged(black_env):
     bg = rng.random((SIZE, SIZE, 3)).astype(np.float32)
     out = _shade(black_env, RenderConfig(), background=bg, thickness=0.0)
     np.testing.assert_array_equal(out[..., :3], bg)
-    assert not out[..., 3].any()
+    np.testing.assert_array_equal(out[..., 3], 1.0)  # the scene background is opaque
 
 
 def test_thicker_fluid_absorbs_more_and_objects_in_front_win(black_env):
     bg = np.ones((SIZE, SIZE, 3), np.float32)
-    p = RenderConfig(light_intensity=0.0, diffuse_weight=0.0, refraction_strength=0.0)
+    p = RenderConfig(light_intensity=0.0, diffuse_weight=0.0)
     thin = _shade(black_env, p, background=bg, thickness=0.05)[C, C, :3]
     thick = _shade(black_env, p, background=bg, thickness=0.5)[C, C, :3]
     assert np.all(thick < thin)
@@ -87,3 +88,123 @@ def test_thicker_fluid_absorbs_more_and_objects_in_front_win(black_env):
     near = np.full((SIZE, SIZE), 0.5, np.float32)  # an object at 0.5 m, the fluid at 1 m
     out = _shade(black_env, p, background=bg, background_depth=near)
     np.testing.assert_array_equal(out[..., :3], bg)
+
+
+def test_alpha_is_premultiplied_over_the_scene_and_over_nothing(black_env):
+    """Half the image is fluid: the fluid layer is colour times coverage, the beauty is that over
+    the background (opaque) or over transparent black, and depth is the nearest surface's."""
+    n, d, t, m = _buffers()
+    m[:, C:] = 0.0
+    bg = np.full((SIZE, SIZE, 3), 0.25, np.float32)
+    bgd = np.full((SIZE, SIZE), 3.0, np.float32)
+    bgd[:4] = 0.0  # the sky above
+    over = black_env.shade(n, d, t, m, bg, bgd, _camera(), RenderConfig())
+    alone = black_env.shade(n, d, t, m, bg, np.zeros_like(bgd), _camera(), RenderConfig(background="none"))
+    fluid = m > 0
+    for out in (over, alone):
+        np.testing.assert_array_equal(out.fluid[..., 3], fluid)
+        assert not out.fluid[~fluid].any()
+        np.testing.assert_array_equal(out.beauty[fluid], out.fluid[fluid])
+    np.testing.assert_array_equal(over.beauty[~fluid], np.append(bg[0, 0], 1.0)[None].repeat((~fluid).sum(), 0))
+    assert not alone.beauty[~fluid].any(), "RGB is 0 where A is 0"
+    np.testing.assert_array_equal(over.depth[fluid], 1.0)
+    np.testing.assert_array_equal(over.depth[~fluid & (bgd > 0)], 3.0)
+    assert np.isinf(over.depth[~fluid & (bgd == 0)]).all() and np.isinf(alone.depth[~fluid]).all()
+    assert not over.normals_view[~fluid].any()
+
+
+def test_refraction_follows_snell_through_the_thickness(black_env):
+    """A tilted surface over a horizontal ramp: the background is read where the refracted ray
+    leaves the fluid's thickness, projected at that depth (for a centre pixel, analytically)."""
+    ramp = np.broadcast_to(np.arange(SIZE, dtype=np.float32)[None, :, None], (SIZE, SIZE, 3)).copy()
+    p = RenderConfig(light_intensity=0.0, diffuse_weight=0.0, absorption=0.0, ior=1.33, refraction_strength=1.0)
+    tilt = np.radians(30)
+    normal = (math.sin(tilt), 0.0, math.cos(tilt))
+    thickness = 0.2
+    out = _shade(black_env, p, background=ramp, thickness=thickness, normal=normal)[C, C, :3]
+    cos_i = math.cos(tilt)
+    sin_t = math.sin(tilt) / p.ior
+    # the refracted direction in the plane of the view ray (-Z) and the normal, then its lateral
+    # offset per unit depth (tan of the angle to -Z) over the thickness
+    bend = tilt - math.asin(sin_t)  # the ray turns towards -normal by the difference of the angles
+    offset_m = thickness * math.tan(-bend)
+    col = C + 0.5 + _camera().focal_px * offset_m / (1.0 + thickness)
+    f = fresnel_f0(p.ior) + (1 - fresnel_f0(p.ior)) * (1 - cos_i) ** 5
+    np.testing.assert_allclose(out, (1 - f) * (col - 0.5), rtol=1e-4)
+    assert col < C + 0.5 - 1, "a visible shift"
+
+
+def test_normals_facing_away_are_bent_towards_the_viewer(black_env):
+    """A normal pointing away from the camera (screen-space noise at an edge) is shaded as one
+    that faces it at ``min_facing``, not as a mirror of what lies behind the camera."""
+    p = RenderConfig(min_facing=0.3)
+    n, d, t, m = _buffers(normal=(0.0, 0.6, -0.8))
+    out = black_env.shade(n, d, t, m, np.ones((SIZE, SIZE, 3), np.float32), np.zeros((SIZE, SIZE), np.float32),
+                          _camera(), p)
+    bent = out.normals_view[C, C]
+    np.testing.assert_allclose(np.linalg.norm(bent), 1.0, rtol=1e-5)
+    # n + v (0.3 - n.v) = (0, 0.6, 0.3), normalised; v = +Z at the centre pixel
+    np.testing.assert_allclose(bent, np.array([0.0, 0.6, 0.3]) / np.linalg.norm([0.0, 0.6, 0.3]), rtol=1e-5)
+    assert bent[1] > 0, "it keeps its direction across the image"
+    untouched = black_env.shade(*_buffers(normal=(0.0, 0.6, 0.8)), np.ones((SIZE, SIZE, 3), np.float32),
+                                np.zeros((SIZE, SIZE), np.float32), _camera(), p).normals_view[C, C]
+    np.testing.assert_allclose(untouched, [0.0, 0.6, 0.8], atol=1e-6)
+
+
+def _longitude_map(width: int = 64) -> np.ndarray:
+    """A lat-long map whose red is the column (so a lookup tells which longitude it hit)."""
+    env = np.zeros((32, width, 3), np.float32)
+    env[..., 0] = np.arange(width)[None, :]
+    env[..., 1] = 1.0
+    return env
+
+
+def test_environment_rotation_and_strength():
+    """The centre pixel looks down -Z, the middle of the map; turned by 90 degrees counter-clockwise
+    (seen from above) the map shows there what it had at +X (three quarters across)."""
+    w = 64
+    shader = Shader("cpu", environment=_longitude_map(w))
+    empty = np.zeros((SIZE, SIZE, 3), np.float32), np.zeros((SIZE, SIZE), np.float32)
+    base = shader.fill_sky(*empty, _camera(), RenderConfig())[C, C]
+    turned = shader.fill_sky(*empty, _camera(), RenderConfig(environment_rotation_deg=90.0))[C, C]
+    strong = shader.fill_sky(*empty, _camera(), RenderConfig(environment_strength=2.5))[C, C]
+    shader.close()
+    assert base[0] == pytest.approx(w / 2 - 0.5, abs=1e-3)  # u = 0.5: between columns 31 and 32
+    assert turned[0] == pytest.approx(3 * w / 4 - 0.5, abs=1e-3)  # what was at +X turned to -Z
+    np.testing.assert_allclose(strong, 2.5 * base, rtol=1e-6)
+
+
+def _write_rgbe(path, rgb: np.ndarray) -> None:
+    """A flat (not run-length encoded) Radiance file, written by hand from exact powers of two."""
+    h, w, _ = rgb.shape
+    e = np.floor(np.log2(np.maximum(rgb.max(-1), 1e-30))).astype(int) + 1
+    mant = np.round(rgb / np.ldexp(1.0, e)[..., None] * 256).clip(0, 255)
+    data = np.concatenate([mant, (e + 128)[..., None]], -1).astype(np.uint8)
+    path.write_bytes(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n" + f"-Y {h} +X {w}\n".encode() + data.tobytes())
+
+
+def test_environment_maps_load_from_exr_and_hdr(tmp_path):
+    from pipeline.exr import write_exr
+
+    rgb = np.ldexp(1.0, np.arange(-3, 9)).reshape(2, 2, 3).astype(np.float32)  # exact in RGBE
+    _write_rgbe(tmp_path / "flat.hdr", rgb)
+    np.testing.assert_array_equal(load_environment(tmp_path / "flat.hdr"), rgb)
+    write_exr(tmp_path / "env.exr", {c: rgb[..., k] for k, c in enumerate("RGB")})
+    np.testing.assert_array_equal(load_environment(tmp_path / "env.exr"), rgb)
+    with pytest.raises(ValueError, match="bad.png"):
+        load_environment(tmp_path / "bad.png")
+
+
+def test_run_length_encoded_hdr_matches_openimageio(tmp_path):
+    """A second writer: OpenImageIO's .hdr (run-length encoded scanlines) reads back the same."""
+    oiio = pytest.importorskip("OpenImageIO")
+    rng = np.random.default_rng(1)
+    rgb = (rng.random((9, 40, 3)) * 50).astype(np.float32)
+    rgb[:, 10:30] = 3.0  # runs
+    out = oiio.ImageOutput.create(str(tmp_path / "env.hdr"))
+    assert out.open(str(tmp_path / "env.hdr"), oiio.ImageSpec(40, 9, 3, oiio.FLOAT))
+    assert out.write_image(rgb)
+    out.close()
+    expected = oiio.ImageBuf(str(tmp_path / "env.hdr")).get_pixels(oiio.FLOAT)
+    np.testing.assert_allclose(load_environment(tmp_path / "env.hdr"), expected, rtol=1e-6)
+    assert (np.abs(expected - rgb) <= rgb.max(-1, keepdims=True) / 64).all(), "RGBE keeps 8 bits of the largest"

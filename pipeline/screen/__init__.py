@@ -207,6 +207,35 @@ class ScreenSpace:
                 out[f"{key}.N"] = self._download(self._normals(d, camera), (*shape, 3))
         return out
 
+    def motion(self, positions_world: np.ndarray, particle_motion: np.ndarray, radius: float, camera: Camera,
+               depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Per-pixel screen motion (H x W x 4) of the front-most particles, from each particle's
+        ``particle_motion`` (N x 4, e.g. ``pipeline.screen.motion.particle_motion``), and the
+        H x W mask of pixels it reached.
+
+        Particles are spheres of ``radius``; those whose front surface lies within a radius of the
+        nearest count as front-most. ``depth`` (H x W view depth of the surface the frame shows,
+        0 or inf where none) replaces that nearest depth, and saves a splat: particles within two
+        radii of it count, a margin for filtered depths."""
+        w, h = camera.width, camera.height
+        if depth is None:
+            reference, band = self._splat(positions_world, radius, camera)[0], radius
+        else:
+            reference, band = self._upload("motion_depth", np.where(np.isfinite(depth), depth, 0.0)), 2 * radius
+        total, weight = self._buffer("motion_sum", w * h, wp.vec4), self._buffer("motion_weight", w * h)
+        total.zero_()
+        weight.zero_()
+        n = len(positions_world)
+        if n:
+            centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
+                               dtype=wp.vec3, device=self.device)
+            motion = wp.array(np.ascontiguousarray(particle_motion, np.float32), dtype=wp.vec4, device=self.device)
+            self.launch.tasks(K.splat_motion, n, [[centers, motion, radius, camera.focal_px, w, h, r0, r1, reference,
+                                                   band, total, weight] for r0, r1 in self._row_bands(h)])
+        out = self._buffer("motion", w * h, wp.vec4)
+        self.launch(K.finish_motion, w * h, [total, weight, out])
+        return self._download(out, (h, w, 4)), self._download(weight, (h, w)) > 0
+
     def splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> SplatResult:
         """Nearest sphere-surface depth, fluid mask and summed chord thickness per pixel."""
         shape = (camera.height, camera.width)

@@ -474,3 +474,53 @@ def normals_from_depth(
         normals[idx] = wp.vec3(0.0, 0.0, 1.0)
     else:
         normals[idx] = n / ln
+
+
+@wp.kernel
+def splat_motion(
+    offset: int,
+    centers_view: wp.array(dtype=wp.vec3),
+    motion: wp.array(dtype=wp.vec4),
+    radius: float,
+    focal: float,
+    width: int,
+    height: int,
+    row0: int,
+    row1: int,
+    depth: wp.array(dtype=float),
+    band: float,
+    motion_sum: wp.array(dtype=wp.vec4),
+    weight: wp.array(dtype=float),
+):
+    """Second pass of a sphere splat into the rows [row0, row1): every particle whose front surface
+    at a pixel lies within ``band`` of the splatted (nearest) depth adds its screen motion there, so
+    a pixel gets the mean motion of the front-most particles it shows. Bands own their rows, as in
+    ``splat_spheres``."""
+    i = wp.tid() + offset
+    c = centers_view[i]
+    box = splat_bounds(c, radius, focal, width, height, row0, row1)
+    cc = wp.dot(c, c) - radius * radius
+    m = motion[i]
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            ray = pixel_ray(px, py, width, height, focal)
+            a = wp.dot(ray, ray)
+            b = wp.dot(ray, c)
+            disc = b * b - a * cc
+            if disc > 0.0:
+                idx = py * width + px
+                if (b - wp.sqrt(disc)) / a <= depth[idx] + band:
+                    wp.atomic_add(motion_sum, idx, m)
+                    wp.atomic_add(weight, idx, 1.0)
+
+
+@wp.kernel
+def finish_motion(offset: int, motion_sum: wp.array(dtype=wp.vec4), weight: wp.array(dtype=float),
+                  motion: wp.array(dtype=wp.vec4)):
+    """Mean motion per pixel (0 where no particle was splatted)."""
+    idx = wp.tid() + offset
+    w = weight[idx]
+    if w > 0.0:
+        motion[idx] = motion_sum[idx] / w
+    else:
+        motion[idx] = wp.vec4(0.0, 0.0, 0.0, 0.0)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 import warp as wp
 
@@ -19,6 +22,23 @@ def fresnel_f0(ior: float) -> float:
 def absorption_coefficients(p: RenderConfig) -> np.ndarray:
     """Beer-Lambert sigma_a per channel (1/m) from the fluid colour (transmittance per metre)."""
     return -np.log(np.clip(np.asarray(p.fluid_color, np.float64), 1e-4, 1.0)) * p.absorption
+
+
+@dataclass
+class ShadedPasses:
+    """What the shading kernel writes for one frame (H x W [x k], linear, premultiplied colour)."""
+
+    beauty: np.ndarray         # RGBA: the fluid over the background (alpha 1), or over nothing (alpha = coverage)
+    fluid: np.ndarray          # RGBA: the fluid alone (colour times coverage, alpha the coverage)
+    depth: np.ndarray          # view depth of the nearest surface (m), +inf where there is none
+    normals_view: np.ndarray   # the shaded unit normals in view space, 0 outside the fluid
+    normals_world: np.ndarray  # the same in world space
+
+
+def environment_rotation(p: RenderConfig) -> tuple[float, float]:
+    """(cos, sin) of the environment's turn about the world up axis."""
+    a = math.radians(p.environment_rotation_deg)
+    return math.cos(a), math.sin(a)
 
 
 class Shader:
@@ -42,7 +62,8 @@ class Shader:
     def _output(self, host: np.ndarray, dtype) -> wp.array:
         """Where a kernel writes ``host``'s pixels: ``host`` itself on the CPU, a device array on a GPU."""
         if self._cpu:
-            return wp.array(host.reshape(-1, host.shape[-1]), dtype=dtype, device=self.device, copy=False)
+            flat = host.reshape(-1) if dtype is float else host.reshape(-1, host.shape[-1])
+            return wp.array(flat, dtype=dtype, device=self.device, copy=False)
         return wp.empty(host.shape[0] * host.shape[1], dtype=dtype, device=self.device)
 
     def _result(self, out: wp.array, host: np.ndarray) -> np.ndarray:
@@ -51,25 +72,34 @@ class Shader:
         return host
 
     def shade(self, normals: np.ndarray, depth: np.ndarray, thickness: np.ndarray, mask: np.ndarray,
-              background: np.ndarray, background_depth: np.ndarray, camera: Camera, p: RenderConfig) -> np.ndarray:
-        """Linear RGBA beauty (H x W x 4); alpha is 1 where the fluid is visible."""
+              background: np.ndarray, background_depth: np.ndarray, camera: Camera, p: RenderConfig) -> ShadedPasses:
+        """Premultiplied beauty and fluid colour, the nearest depth and the shaded normals.
+
+        ``background_depth`` is 0 where nothing was rasterised. With ``p.background`` 'none' the
+        beauty's alpha is the fluid's coverage and its colour 0 elsewhere; the fluid still refracts
+        ``background`` (then only the environment)."""
         h, w = depth.shape
         arr = self._device_view
         light_world = np.asarray(p.light_dir, np.float64)
         light_world /= np.linalg.norm(light_world)
         light_view = camera.view[:3, :3] @ light_world
-        beauty = np.empty((h, w, 4), np.float32)
-        out = self._output(beauty, wp.vec4)
+        out = ShadedPasses(*(np.empty((h, w, 4), np.float32) for _ in range(2)), np.empty((h, w), np.float32),
+                           *(np.empty((h, w, 3), np.float32) for _ in range(2)))
+        dev = [self._output(out.beauty, wp.vec4), self._output(out.fluid, wp.vec4), self._output(out.depth, float),
+               self._output(out.normals_view, wp.vec3), self._output(out.normals_world, wp.vec3)]
         rot = camera.cam_to_world[:3, :3].astype(np.float32)
         alpha = max(p.roughness**2, 1e-3)
         self.launch(K.shade_fluid, h * w, [
             arr(normals, wp.vec3), arr(depth), arr(thickness), arr(mask), arr(background, wp.vec3),
-            arr(background_depth), self.env, self.use_env_map, wp.mat33(*rot.ravel()),
+            arr(background_depth), 1.0 if p.background == "scene" else 0.0, self.env, self.use_env_map,
+            wp.vec2(*environment_rotation(p)), p.environment_strength, wp.mat33(*rot.ravel()),
             wp.vec3(*light_view.astype(np.float32)), wp.vec3(*light_world.astype(np.float32)), w, h,
-            camera.focal_px, fresnel_f0(p.ior), wp.vec3(*absorption_coefficients(p).astype(np.float32)),
+            camera.focal_px, fresnel_f0(p.ior), 1.0 / p.ior, wp.vec3(*absorption_coefficients(p).astype(np.float32)),
             wp.vec3(*p.fluid_color), p.diffuse_weight, p.light_intensity, alpha, int(p.specular == "ggx"),
-            p.refraction_strength * w, out])
-        return self._result(out, beauty)
+            p.refraction_strength, p.min_facing, *dev])
+        for a, host in zip(dev, (out.beauty, out.fluid, out.depth, out.normals_view, out.normals_world), strict=True):
+            self._result(a, host)
+        return out
 
     def fill_sky(self, background: np.ndarray, background_depth: np.ndarray, camera: Camera,
                  p: RenderConfig) -> np.ndarray:
@@ -82,8 +112,8 @@ class Shader:
         rot = camera.cam_to_world[:3, :3].astype(np.float32)
         self.launch(K.fill_sky, h * w, [
             self._device_view(background, wp.vec3), self._device_view(background_depth),
-            self.env, self.use_env_map, wp.mat33(*rot.ravel()), wp.vec3(*sun.astype(np.float32)), w, h,
-            camera.focal_px, out])
+            self.env, self.use_env_map, wp.vec2(*environment_rotation(p)), p.environment_strength,
+            wp.mat33(*rot.ravel()), wp.vec3(*sun.astype(np.float32)), w, h, camera.focal_px, out])
         return self._result(out, sky)
 
     def close(self) -> None:
@@ -105,12 +135,12 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
-__all__ = ["Shader", "fresnel_f0", "absorption_coefficients", "tonemap", "srgb_to_linear"]
+__all__ = ["Shader", "ShadedPasses", "fresnel_f0", "absorption_coefficients", "tonemap", "srgb_to_linear",
+           "load_environment"]
 
 
 def load_environment(path) -> np.ndarray:
-    """A latitude-longitude HDR map (EXR with R, G, B channels) as H x W x 3 linear float32."""
-    from pipeline.exr import read_exr
+    """A latitude-longitude HDR map (``.exr`` or Radiance ``.hdr``) as H x W x 3 linear float32."""
+    from pipeline.shading.environment import read_environment
 
-    ch = read_exr(path, ["R", "G", "B"])
-    return np.stack([ch["R"], ch["G"], ch["B"]], -1).astype(np.float32)
+    return read_environment(path)

@@ -2,8 +2,17 @@
 background, Beer-Lambert absorption by thickness, a small diffuse term and Blinn-Phong or GGX
 specular highlights from one directional light.
 
-All vectors are in view space except the reflection lookup, which turns the reflected ray into
-world space for the environment. Colours are linear RGB.
+Refraction follows Snell's law: the view ray bends at the fluid surface and crosses the fluid's
+thickness along the refracted direction; the background is looked up where that ray leaves the
+fluid (the floor and walls a fluid rests on are seen through one interface). Normals that face
+away from the camera or graze it, which screen-space normal estimates produce at silhouettes and
+depth discontinuities, are bent towards the viewer before shading (otherwise Fresnel goes to 1 and
+the pixel mirrors the ground: dark speckles).
+
+Outputs are premultiplied: ``fluid`` is the fluid alone (RGB times coverage, A the coverage),
+``beauty`` the fluid over the background, whose alpha is 1 (``background_alpha`` 1) or 0 (the
+fluid over transparent black). All vectors are in view space except environment lookups, which
+turn rays into world space. Colours are linear RGB.
 """
 
 import warp as wp
@@ -59,6 +68,19 @@ def latlong(env: wp.array2d(dtype=wp.vec3), d: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def environment(env: wp.array2d(dtype=wp.vec3), use_env_map: int, d: wp.vec3, sun: wp.vec3, rotation: wp.vec2,
+                strength: float) -> wp.vec3:
+    """Radiance from world direction d: the lat-long map turned by ``rotation`` (cos, sin of the
+    angle about +Y) or the procedural sky, times ``strength``."""
+    if use_env_map != 0:
+        # the map turned by +angle shows at d what the unturned map shows at d turned by -angle
+        c = rotation[0]
+        s = rotation[1]
+        return latlong(env, wp.vec3(c * d[0] - s * d[2], d[1], s * d[0] + c * d[2])) * strength
+    return procedural_sky(d, sun) * strength
+
+
+@wp.func
 def sample_bilinear(img: wp.array(dtype=wp.vec3), width: int, height: int, x: float, y: float) -> wp.vec3:
     """Clamped bilinear lookup of a row-major image at pixel coordinates (centres at +0.5)."""
     u = wp.clamp(x - 0.5, 0.0, float(width - 1))
@@ -111,6 +133,8 @@ def fill_sky(
     background_depth: wp.array(dtype=float),
     env: wp.array2d(dtype=wp.vec3),
     use_env_map: int,
+    env_rotation: wp.vec2,
+    env_strength: float,
     cam_to_world: wp.mat33,
     sun_world: wp.vec3,
     width: int,
@@ -127,11 +151,21 @@ def fill_sky(
     col = idx - row * width
     ray = wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal, -(float(row) + 0.5 - float(height) * 0.5) / focal,
                   -1.0)
-    d = wp.normalize(cam_to_world * ray)
-    if use_env_map != 0:
-        out[idx] = latlong(env, d)
-    else:
-        out[idx] = procedural_sky(d, sun_world)
+    out[idx] = environment(env, use_env_map, wp.normalize(cam_to_world * ray), sun_world, env_rotation, env_strength)
+
+
+@wp.func
+def face_viewer(n: wp.vec3, v: wp.vec3, min_facing: float) -> wp.vec3:
+    """Unit n bent towards the unit view vector v until their cosine is about ``min_facing``
+    (unchanged when it already is at least that); a zero n becomes v."""
+    ln = wp.length(n)
+    if ln < 1.0e-6:
+        return v
+    n = n / ln
+    nv = wp.dot(n, v)
+    if nv < min_facing:
+        n = wp.normalize(n + v * (min_facing - nv))
+    return n
 
 
 @wp.kernel
@@ -143,8 +177,11 @@ def shade_fluid(
     mask: wp.array(dtype=float),
     background: wp.array(dtype=wp.vec3),
     background_depth: wp.array(dtype=float),
+    background_alpha: float,
     env: wp.array2d(dtype=wp.vec3),
     use_env_map: int,
+    env_rotation: wp.vec2,
+    env_strength: float,
     cam_to_world: wp.mat33,
     light_view: wp.vec3,
     sun_world: wp.vec3,
@@ -152,47 +189,58 @@ def shade_fluid(
     height: int,
     focal: float,
     f0: float,
+    eta: float,
     absorb: wp.vec3,
     fluid_color: wp.vec3,
     diffuse_weight: float,
     light_intensity: float,
     alpha: float,
     use_ggx: int,
-    refraction_px: float,
+    refraction_scale: float,
+    min_facing: float,
     beauty: wp.array(dtype=wp.vec4),
+    fluid: wp.array(dtype=wp.vec4),
+    depth_out: wp.array(dtype=float),
+    normals_view: wp.array(dtype=wp.vec3),
+    normals_world: wp.array(dtype=wp.vec3),
 ):
-    """Composite the fluid over the background with a depth test; alpha = 1 where fluid shows."""
+    """Shade the fluid where it is visible (in the mask, in front of the background) and composite
+    it over the background; also the depth of the nearest surface (+inf where there is none) and
+    the shaded normals in view and world space (0 outside the fluid)."""
     idx = wp.tid() + offset
     bg = background[idx]
     d = depth[idx]
     t = thickness[idx]
     bd = background_depth[idx]
     if mask[idx] <= 0.0 or t <= 0.0 or d <= 0.0 or (bd > 0.0 and bd < d):
-        beauty[idx] = wp.vec4(bg[0], bg[1], bg[2], 0.0)
+        beauty[idx] = wp.vec4(bg[0] * background_alpha, bg[1] * background_alpha, bg[2] * background_alpha,
+                              background_alpha)
+        fluid[idx] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+        if bd > 0.0:
+            depth_out[idx] = bd
+        else:
+            depth_out[idx] = wp.inf
+        normals_view[idx] = wp.vec3(0.0, 0.0, 0.0)
+        normals_world[idx] = wp.vec3(0.0, 0.0, 0.0)
         return
     row = idx // width
     col = idx - row * width
-    p = wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal, -(float(row) + 0.5 - float(height) * 0.5) / focal,
-                -1.0) * d
-    v = -wp.normalize(p)
-    n = normals[idx]
-    ln = wp.length(n)
-    if ln < 1.0e-6:
-        n = v
-    else:
-        n = n / ln
-    nv = wp.max(wp.dot(n, v), 0.0)
+    ray = wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal, -(float(row) + 0.5 - float(height) * 0.5) / focal,
+                  -1.0)
+    v = -wp.normalize(ray)
+    n = face_viewer(normals[idx], v, min_facing)
+    nv = wp.dot(n, v)
     fresnel = fresnel_schlick(nv, f0)
-    r = n * (2.0 * wp.dot(n, v)) - v
-    rw = wp.normalize(cam_to_world * r)
-    reflected = wp.vec3(0.0, 0.0, 0.0)
-    if use_env_map != 0:
-        reflected = latlong(env, rw)
-    else:
-        reflected = procedural_sky(rw, sun_world)
-    # refraction: look up the background displaced along the normal, more for thicker fluid
-    refr = sample_bilinear(background, width, height, float(col) + 0.5 + n[0] * t * refraction_px,
-                           float(row) + 0.5 - n[1] * t * refraction_px)
+    r = n * (2.0 * nv) - v
+    reflected = environment(env, use_env_map, wp.normalize(cam_to_world * r), sun_world, env_rotation, env_strength)
+    # Snell: the refracted ray crosses the thickness; look up the background where it leaves the
+    # fluid, displaced from where the straight ray leaves it (projected at that depth)
+    k = 1.0 - eta * eta * (1.0 - nv * nv)
+    bent = -v * eta + n * (eta * nv - wp.sqrt(wp.max(k, 0.0)))
+    shift = (bent / wp.max(-bent[2], 0.05) - ray) * t * refraction_scale
+    exit_depth = d + t
+    refr = sample_bilinear(background, width, height, float(col) + 0.5 + focal * shift[0] / exit_depth,
+                           float(row) + 0.5 - focal * shift[1] / exit_depth)
     transmit = wp.vec3(wp.exp(-absorb[0] * t), wp.exp(-absorb[1] * t), wp.exp(-absorb[2] * t))
     refracted = wp.cw_mul(refr, transmit)
     spec = float(0.0)
@@ -203,3 +251,7 @@ def shade_fluid(
     diffuse = fluid_color * (diffuse_weight * wp.max(wp.dot(n, light_view), 0.0) * light_intensity)
     c = reflected * fresnel + refracted * (1.0 - fresnel) + diffuse + wp.vec3(1.0, 1.0, 1.0) * (spec * light_intensity)
     beauty[idx] = wp.vec4(c[0], c[1], c[2], 1.0)
+    fluid[idx] = wp.vec4(c[0], c[1], c[2], 1.0)
+    depth_out[idx] = d
+    normals_view[idx] = n
+    normals_world[idx] = cam_to_world * n

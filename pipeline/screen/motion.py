@@ -1,0 +1,70 @@
+"""Screen-space motion vectors in Blender's ``Vector`` pass layout.
+
+Four values per pixel, in pixels with +Y up the image (Blender and Nuke count rows from the
+bottom): (X, Y) = where the point was one frame earlier minus where it is now, (Z, W) = where it is
+now minus where it will be one frame later (Cycles' convention). A point moving right at 5 pixels
+per frame has X = Z = -5. A particle's world motion over one frame is its velocity (m/s) divided
+by the frame rate; the camera's motion counts too when the neighbouring frames' cameras are given
+(``gap`` frames away: motion is divided by the gap, the particle assumed at constant velocity).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.camera import Camera
+
+
+def _pixels(points_world: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(column, row) pixel coordinates (N x 2, rows down) and whether each point is in front."""
+    col, row, d = camera.project(camera.to_view(points_world))
+    front = d > 1e-6
+    return np.stack([np.where(front, col, 0.0), np.where(front, row, 0.0)], -1), front
+
+
+def _up(delta_px: np.ndarray) -> np.ndarray:
+    """Pixel displacements (rows down) with +Y up."""
+    return delta_px * np.array([1.0, -1.0])
+
+
+def particle_motion(positions: np.ndarray, velocities: np.ndarray | None, camera: Camera, fps: float,
+                    prev: tuple[Camera, int] | None = None, nxt: tuple[Camera, int] | None = None) -> np.ndarray:
+    """N x 4 motion of each particle (``Vector`` layout, pixels per frame) from its velocity (m/s,
+    None: at rest) at ``fps`` frames per second, with the cameras (and frame gaps) of the previous
+    and next rendered frames (None: this frame's camera, gap 1). Points behind a camera get 0."""
+    x = np.asarray(positions, np.float64)
+    step = np.zeros_like(x) if velocities is None else np.asarray(velocities, np.float64) / fps
+    cam_prev, gap_prev = prev or (camera, 1)
+    cam_next, gap_next = nxt or (camera, 1)
+    now, front = _pixels(x, camera)
+    before, front_prev = _pixels(x - step * gap_prev, cam_prev)
+    after, front_next = _pixels(x + step * gap_next, cam_next)
+    back = _up(before - now) / gap_prev
+    ahead = _up(now - after) / gap_next
+    out = np.concatenate([np.where((front & front_prev)[:, None], back, 0.0),
+                          np.where((front & front_next)[:, None], ahead, 0.0)], axis=1)
+    return out.astype(np.float32)
+
+
+def camera_motion(depth: np.ndarray, camera: Camera, prev: tuple[Camera, int] | None = None,
+                  nxt: tuple[Camera, int] | None = None) -> np.ndarray | None:
+    """H x W x 4 motion (``Vector`` layout) of static surfaces at view ``depth`` (m; 0 or inf:
+    none, motion 0) caused by the camera moving between frames; None when it does not move."""
+    moving = [c for c in (prev, nxt) if c is not None and not np.array_equal(c[0].view, camera.view)]
+    if not moving:
+        return None
+    h, w = depth.shape
+    solid = np.isfinite(depth) & (depth > 0)
+    out = np.zeros((h, w, 4), np.float32)
+    if not solid.any():
+        return out
+    points_view = camera.unproject(np.where(solid, depth, 0.0))[solid].astype(np.float64)
+    points = (points_view - camera.view[:3, 3]) @ camera.view[:3, :3]  # view to world (rotation is orthonormal)
+    now, _ = _pixels(points, camera)
+    for k, (other, sign) in enumerate(((prev, 1.0), (nxt, -1.0))):
+        if other is None:
+            continue
+        moved, front = _pixels(points, other[0])
+        delta = _up(moved - now) * sign / other[1]
+        out[solid, 2 * k:2 * k + 2] = np.where(front[:, None], delta, 0.0)
+    return out

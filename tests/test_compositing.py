@@ -1,0 +1,247 @@
+"""Rendered EXR frames as a compositor sees them: channel names, premultiplied alpha, depth of the
+background, the camera in the header and motion vectors, read back with OpenEXR and OpenImageIO."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+
+from pipeline.camera import Camera, look_at
+from pipeline.config import Config, RenderConfig
+from pipeline.exr import read_exr, read_exr_header, stack
+from pipeline.methods import channel_names
+from pipeline.renderer import SequenceRenderer
+from pipeline.shading.background import Surroundings
+
+SIZE = 64
+FPS = 24.0
+RADIUS = 0.08
+L = "ViewLayer."
+EXPECTED_CHANNELS = [f"{L}Combined.{c}" for c in "RGBA"] + [f"{L}Depth.Z"] + [f"{L}Fluid.{c}" for c in "RGBA"] + [
+    f"{L}Thickness.X", f"{L}Mask.X"] + [f"{L}Normal.{c}" for c in "XYZ"] + [f"{L}ViewNormal.{c}" for c in "XYZ"] + [
+    f"{L}Vector.{c}" for c in "XYZW"]
+
+
+def _camera() -> Camera:
+    return Camera(look_at((0.5, 0.6, 2.2), (0.5, 0.25, 0.5)), 40.0, SIZE, SIZE)
+
+
+def _blob(centre=(0.5, 0.3, 0.5), single: bool = False) -> np.ndarray:
+    """A small ball of particles (a fluid drop) around ``centre``, or one particle there."""
+    if single:
+        return np.asarray([centre], np.float32)
+    g = np.linspace(-1.5, 1.5, 4) * RADIUS
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    return (pts[np.linalg.norm(pts, axis=1) <= 2.2 * RADIUS] + centre).astype(np.float32)
+
+
+def _render(tmp_path, velocity=(0.0, 0.0, 0.0), frames=(1, 2), cameras=None, single=False, **render):
+    """Render a drop (or a ``single`` particle) moving at ``velocity`` (m/s) over the box 0..1
+    with the bilateral method."""
+    p = RenderConfig(width=SIZE, height=SIZE, method="bilateral", comparison=False, **render)
+    config = dataclasses.replace(Config(scenes=()), render=p)
+    v = None if velocity is None else np.asarray(velocity, np.float32)
+
+    def load(frame: int):
+        x = _blob(single=single) + (0 if v is None else v * (frame - 1) / FPS)
+        return x, None if v is None else np.broadcast_to(v, x.shape).copy()
+
+    cams = cameras or [_camera()] * len(frames)
+    around = Surroundings((0.0, 0.0, 0.0), (1.0, 0.6, 1.0), walls=False)
+    with SequenceRenderer(tmp_path, "drop", around, config, "cpu") as renderer:
+        files = renderer.render(list(frames), load, RADIUS, lambda i: cams[i], fps=FPS)
+    return files, [load(f)[0] for f in frames]
+
+
+@pytest.fixture(scope="module")
+def scene_frames(tmp_path_factory):
+    """Two frames of a drop moving at a known velocity over a floor, the default background."""
+    folder = tmp_path_factory.mktemp("scene")
+    files, positions = _render(folder, velocity=(0.6, 0.3, 0.0))
+    return folder, files, positions
+
+
+def test_every_pass_is_one_named_layer_channel(scene_frames):
+    folder, files, _ = scene_frames
+    assert files[:2] == ["frames/frame_0001.exr", "frames/frame_0002.exr"]
+    assert channel_names() == EXPECTED_CHANNELS
+    ch = read_exr(folder / files[0])
+    assert sorted(ch) == sorted(EXPECTED_CHANNELS)
+    # Blender's split: the last token is the channel, the one before it the pass, the rest the layer
+    assert {n.rsplit(".", 2)[0] for n in ch} == {"ViewLayer"}
+    assert {n.rsplit(".", 2)[1] for n in ch} == {"Combined", "Depth", "Fluid", "Thickness", "Mask", "Normal",
+                                                 "ViewNormal", "Vector"}
+
+
+def test_scene_background_is_opaque_and_the_fluid_layer_is_premultiplied(scene_frames):
+    folder, files, _ = scene_frames
+    ch = read_exr(folder / files[0])
+    np.testing.assert_array_equal(ch[f"{L}Combined.A"], 1.0)
+    fluid = stack(ch, f"{L}Fluid.", "RGBA")
+    covered = fluid[..., 3] > 0
+    assert 0 < covered.sum() < SIZE * SIZE
+    assert not fluid[~covered].any(), "premultiplied: no colour where the fluid's alpha is 0"
+    beauty = stack(ch, f"{L}Combined.", "RGB")
+    np.testing.assert_allclose(beauty[covered], fluid[covered][:, :3], rtol=2e-3, atol=1e-4)  # half floats
+
+
+def test_depth_is_the_backgrounds_outside_the_fluid_and_infinite_in_the_sky(scene_frames):
+    folder, files, _ = scene_frames
+    ch = read_exr(folder / files[0])
+    z, fluid = ch[f"{L}Depth.Z"], ch[f"{L}Fluid.A"] > 0
+    assert (z > 0).all(), "no zeros in the depth pass"
+    cam = _camera()
+    floor = np.isfinite(z) & ~fluid
+    assert np.isinf(z[0]).all(), "the top row sees the sky"
+    assert floor.any()
+    # the floor lies at y = 0: unprojected floor pixels land there (to the rasteriser's depth precision)
+    world = (cam.unproject(np.where(floor, z, 0))[floor] - cam.view[:3, 3]) @ cam.view[:3, :3]
+    assert (np.abs(world[:, 1]) < 0.01 * z[floor]).all()
+    # the drop (1.73 m away, 0.28 m in radius) is in front of the floor
+    assert 1.73 - 0.3 < z[fluid].min() < z[fluid].max() < 1.73 + 0.3
+
+
+def test_header_holds_the_pipeline_camera(scene_frames):
+    folder, files, positions = scene_frames
+    cam = _camera()
+    header = read_exr_header(folder / files[0])
+    flip = np.diag([1.0, 1.0, -1.0, 1.0])
+    np.testing.assert_allclose(header["worldToCamera"], (flip @ cam.view).T, atol=1e-6)
+    # worldToNDC (row vectors, projective) sends the drop's centre to its pixel / image size
+    centre = np.append(positions[0].mean(0), 1.0)
+    ndc = centre @ header["worldToNDC"]
+    col, row, d = cam.project(cam.to_view(positions[0].mean(0)[None].astype(np.float64)))
+    np.testing.assert_allclose(ndc[:2] / ndc[3], [col[0] / SIZE, row[0] / SIZE], atol=1e-5)
+    np.testing.assert_allclose(ndc[2] / ndc[3], 1 / d[0], rtol=1e-5)
+    # 40 degrees vertical on a square 36 mm sensor: f = 18 / tan(20 degrees)
+    assert header["pinholeFocalLength"] == pytest.approx(18 / np.tan(np.radians(20)), rel=1e-6)
+    np.testing.assert_allclose(header["sensorOverallDimensions"], [36.0, 36.0])
+    assert float(header["framesPerSecond"]) == FPS and header["imageCounter"] == 1
+
+
+def _analytic_motion(cam: Camera, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(Z, W) of Blender's Vector pass for a point at x moving at v: now minus one frame later, +Y up."""
+    col0, row0, _ = cam.project(cam.to_view(x[None].astype(np.float64)))
+    col1, row1, _ = cam.project(cam.to_view((x + v / FPS)[None].astype(np.float64)))
+    return np.array([col0[0] - col1[0], row1[0] - row0[0]])
+
+
+def test_motion_vectors_of_a_particle_at_a_known_speed(tmp_path):
+    v = np.array([0.9, 0.3, -0.4])
+    files, positions = _render(tmp_path, velocity=v, single=True)
+    ch = read_exr(tmp_path / files[0])
+    vec, fluid = stack(ch, f"{L}Vector.", "XYZW"), ch[f"{L}Fluid.A"] > 0
+    assert fluid.sum() > 20
+    ahead = _analytic_motion(_camera(), positions[0][0], v)
+    assert np.abs(ahead).max() > 1.0, "the test needs a visible motion"
+    np.testing.assert_allclose(vec[fluid][:, 2:], np.broadcast_to(ahead, (fluid.sum(), 2)), rtol=1e-5, atol=1e-5)
+    # at constant velocity it came from as far behind: (X, Y) = then - now equals (Z, W) = now - next to
+    # first order (perspective makes them differ slightly)
+    np.testing.assert_allclose(vec[fluid][:, :2], vec[fluid][:, 2:], rtol=0.03)
+    assert not vec[~fluid].any(), "a still camera and floor: no motion outside the fluid"
+
+
+def test_motion_vectors_of_a_drop_follow_its_velocity(scene_frames):
+    folder, files, positions = scene_frames
+    ch = read_exr(folder / files[0])
+    vec, fluid = stack(ch, f"{L}Vector.", "XYZW"), ch[f"{L}Fluid.A"] > 0
+    ahead = _analytic_motion(_camera(), positions[0].mean(0), np.array([0.6, 0.3, 0.0]))
+    # the front particles are nearer and move more pixels: within 12 % over a drop 0.28 m across at 1.7 m
+    np.testing.assert_allclose(vec[fluid][:, 2:], np.broadcast_to(ahead, (fluid.sum(), 2)), rtol=0.12)
+
+
+def test_second_reader_openimageio_sees_the_same_file(scene_frames):
+    oiio = pytest.importorskip("OpenImageIO")
+    folder, files, _ = scene_frames
+    path = str(folder / files[1])
+    inp = oiio.ImageInput.open(path)
+    assert inp is not None, oiio.geterror()
+    spec = inp.spec()
+    pixels = inp.read_image(oiio.FLOAT)
+    inp.close()
+    assert sorted(spec.channelnames) == sorted(EXPECTED_CHANNELS)
+    ours = read_exr(path)
+    for k, name in enumerate(spec.channelnames):
+        np.testing.assert_array_equal(pixels[..., k], ours[name], err_msg=name)
+    np.testing.assert_allclose(np.asarray(spec.getattribute("worldToCamera")).reshape(4, 4),
+                               read_exr_header(path)["worldToCamera"])
+    assert spec.getattribute("compression") == "zip"
+    assert [str(f) for f in spec.channelformats][:4] == ["half"] * 4
+
+
+def test_transparent_background_is_premultiplied_with_infinite_depth(tmp_path):
+    files, _ = _render(tmp_path, background="none", frames=(1,))
+    ch = read_exr(tmp_path / files[0])
+    beauty = stack(ch, f"{L}Combined.", "RGBA")
+    empty = beauty[..., 3] == 0
+    assert 0 < (~empty).sum() < SIZE * SIZE
+    assert not beauty[empty].any(), "RGB is 0 where A is 0"
+    np.testing.assert_array_equal(beauty, stack(ch, f"{L}Fluid.", "RGBA"))
+    z = ch[f"{L}Depth.Z"]
+    assert np.isinf(z[empty]).all() and np.isfinite(z[~empty]).all()
+    assert (beauty[~empty][:, :3] > 0).all(), "the fluid still shows what it reflects and refracts"
+
+
+def test_frames_without_velocities_get_zero_vectors_and_one_warning(tmp_path, caplog):
+    caplog.set_level(logging.WARNING)
+    files, _ = _render(tmp_path, velocity=None, frames=(1, 2, 3))
+    assert caplog.text.count("no particle velocities") == 1
+    for f in files[:3]:
+        assert not stack(read_exr(tmp_path / f), f"{L}Vector.", "XYZW").any()
+
+
+def test_a_moving_camera_moves_the_background(tmp_path):
+    """An orbiting camera: the floor's vectors are its reprojection into the neighbouring frames."""
+    cams = [Camera(look_at((0.5 + 2 * np.sin(a), 0.6, 0.5 + 2 * np.cos(a)), (0.5, 0.25, 0.5)), 40.0, SIZE, SIZE)
+            for a in np.radians([-3.0, 0.0, 3.0])]
+    files, _ = _render(tmp_path, frames=(1, 2, 3), cameras=cams)
+    ch = read_exr(tmp_path / files[1])
+    vec, z = stack(ch, f"{L}Vector.", "XYZW"), ch[f"{L}Depth.Z"]
+    floor = np.isfinite(z) & (ch[f"{L}Fluid.A"] == 0)
+    r, c = np.argwhere(floor)[len(np.argwhere(floor)) // 2]
+    now = cams[1]
+    world = (now.unproject(z)[r, c] - now.view[:3, 3]) @ now.view[:3, :3]
+    col_n, row_n, _ = cams[2].project(cams[2].to_view(world[None]))
+    col_p, row_p, _ = cams[0].project(cams[0].to_view(world[None]))
+    centre = (c + 0.5, r + 0.5)
+    np.testing.assert_allclose(vec[r, c], [col_p[0] - centre[0], centre[1] - row_p[0], centre[0] - col_n[0],
+                                           row_n[0] - centre[1]], atol=1e-3)
+    assert np.abs(vec[r, c]).max() > 0.5
+
+
+def test_the_motion_splat_takes_the_front_particle(ss):
+    """Two particles on one line of sight: pixels show the nearer one's motion; a reference depth
+    (the frame's filtered surface) gives the same answer as the splat's own nearest depth."""
+    cam = _camera()
+    near, far = np.array([0.5, 0.3, 0.9]), np.array([0.5, 0.3, 0.2])
+    positions = np.stack([near, far]).astype(np.float32)
+    motion = np.array([[1.0, 2.0, 3.0, 4.0], [-5.0, -6.0, -7.0, -8.0]], np.float32)
+    out, covered = ss.motion(positions, motion, RADIUS, cam)
+    col, row, d = cam.project(cam.to_view(near[None]))
+    assert covered[int(row[0]), int(col[0])]
+    np.testing.assert_array_equal(out[int(row[0]), int(col[0])], motion[0])
+    assert (out[covered] == motion[0]).all(1).sum() > (out[covered] == motion[1]).all(1).sum() > 0
+    surface = np.where(covered, d[0], 0.0)  # a flat stand-in for the frame's surface at the near particle
+    again, _ = ss.motion(positions, motion, RADIUS, cam, depth=surface)
+    np.testing.assert_array_equal(again[int(row[0]), int(col[0])], motion[0])
+    empty, none = ss.motion(np.zeros((0, 3), np.float32), np.zeros((0, 4), np.float32), RADIUS, cam)
+    assert not empty.any() and not none.any()
+
+
+def test_motion_pass_fills_uncovered_rims_and_keeps_the_background():
+    """A visible disc wider than the splatted one (an ellipsoid's or the mesh's rim) takes the
+    motion of the covered pixels next to it; the background keeps its camera motion."""
+    from pipeline.methods import motion_pass
+
+    yy, xx = np.mgrid[:32, :32]
+    r = np.hypot(yy - 16, xx - 16)
+    visible, covered = (r < 10).astype(np.float32), r < 6
+    fluid = np.zeros((32, 32, 4), np.float32)
+    fluid[covered] = [1.0, -2.0, 3.0, -4.0]
+    background = np.full((32, 32, 4), 0.5, np.float32)
+    out = motion_pass(visible, fluid, covered, background)
+    np.testing.assert_array_equal(out[visible > 0], np.broadcast_to([1.0, -2.0, 3.0, -4.0], ((visible > 0).sum(), 4)))
+    np.testing.assert_array_equal(out[visible == 0], 0.5)
