@@ -18,8 +18,9 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.camera import Camera
-from pipeline.config import Config
+from pipeline.config import Config, RenderConfig
 from pipeline.device import warp_device
+from pipeline.executor import cluster_cpus, run_tasks, shards
 from pipeline.exr import camera_attributes, write_exr
 from pipeline.frames import frame_name, spread
 from pipeline.media import contact_sheet, label, write_png, write_video
@@ -107,19 +108,22 @@ class SequenceRenderer:
             write_png(compare[0], np.concatenate(tiles, axis=1))
 
     def render(self, frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
-               camera_at: Callable[[int], Camera], fps: float | None = None) -> list[str]:
+               camera_at: Callable[[int], Camera], fps: float | None = None, subset: list[int] | None = None,
+               videos: bool = True) -> list[str]:
         """Render the frames not yet done, then the videos; returns the files of the whole sequence.
 
         ``load(frame)`` gives a frame's positions and velocities (m/s, or None), ``camera_at(i)``
         the camera of the i-th frame, ``fps`` the sequence's frames per second, which turns
-        velocities into motion vectors in pixels per frame (default ``render.video_fps``)."""
+        velocities into motion vectors in pixels per frame (default ``render.video_fps``).
+        ``subset`` (positions in ``frames``) renders only those, without ``videos`` (a shard)."""
         p = self.config.render
         fps = fps or p.video_fps
         no_fluid: list[int] = []
         no_velocity = False
         write_timings = Timings()
         with BackgroundWriter() as writer:
-            for i, frame in enumerate(tqdm(frames, desc=f"render {self.name}", unit="frame")):
+            for i in tqdm(range(len(frames)) if subset is None else subset, desc=f"render {self.name}", unit="frame"):
+                frame = frames[i]
                 if self.done(frame):
                     continue
                 positions, velocities = load(frame)
@@ -141,22 +145,7 @@ class SequenceRenderer:
         if no_fluid:
             log.warning("render %s: the camera sees no fluid in %d frames (first: %d); they show the background "
                         "only", self.name, len(no_fluid), no_fluid[0])
-        return self.videos(frames)
-
-    def videos(self, frames: list[int]) -> list[str]:
-        """The preview video (and the comparison video and sheet) of all frames; the sequence's files."""
-        p = self.config.render
-        files = [f"frames/{frame_name(f, 'exr')}" for f in frames]
-        video = f"{self.name}_{p.method}.mp4"
-        write_video(self.folder / video, [self.folder / f"preview/{frame_name(f, 'png')}" for f in frames],
-                    p.video_fps)
-        files.append(video)
-        if p.comparison:
-            compares = [self.folder / f"compare/{frame_name(f, 'png')}" for f in frames]
-            write_video(self.folder / f"{self.name}_comparison.mp4", compares, p.video_fps)
-            contact_sheet(self.folder / f"{self.name}_comparison_sheet.png", spread(compares, 4))
-            files += [f"{self.name}_comparison.mp4", f"{self.name}_comparison_sheet.png"]
-        return files
+        return write_videos(self.folder, self.name, frames, p) if videos else []
 
     def close(self) -> None:
         """Release the rasteriser and device buffers."""
@@ -171,3 +160,37 @@ class SequenceRenderer:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def write_videos(folder: Path, name: str, frames: list[int], p: RenderConfig) -> list[str]:
+    """The preview video (and the comparison video and sheet) of all frames; the sequence's files."""
+    files = [f"frames/{frame_name(f, 'exr')}" for f in frames]
+    video = f"{name}_{p.method}.mp4"
+    write_video(folder / video, [folder / f"preview/{frame_name(f, 'png')}" for f in frames], p.video_fps)
+    files.append(video)
+    if p.comparison:
+        compares = [folder / f"compare/{frame_name(f, 'png')}" for f in frames]
+        write_video(folder / f"{name}_comparison.mp4", compares, p.video_fps)
+        contact_sheet(folder / f"{name}_comparison_sheet.png", spread(compares, 4))
+        files += [f"{name}_comparison.mp4", f"{name}_comparison_sheet.png"]
+    return files
+
+
+def render_sequence(folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner,
+                    frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
+                    camera_at: Callable[[int], Camera], fps: float | None = None) -> tuple[list[str], Timings]:
+    """Render a sequence into ``folder`` here, or with ``config.executor='ray'`` as one shard of
+    frames per CPU of the Ray cluster (each task its own renderer; the videos are made here once
+    all frames are back). Returns the sequence's files and the timings."""
+    def shard(subset: list[int] | None) -> tuple[list[str], Timings]:
+        with SequenceRenderer(folder, name, around, config, device, refiner) as renderer:
+            files = renderer.render(frames, load, radius, camera_at, fps, subset, videos=subset is None)
+        return files, renderer.timings
+
+    if config.executor == "local":
+        return shard(None)
+    timings = Timings()
+    parts = shards(list(range(len(frames))), cluster_cpus(config.executor))
+    for _, t in run_tasks(shard, parts, config.executor, config.ray_address):
+        timings.merge(t)
+    return write_videos(Path(folder), name, frames, config.render), timings

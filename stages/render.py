@@ -16,7 +16,7 @@ from pipeline.camera import camera_for_frame
 from pipeline.config import SceneConfig, to_dict
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
 from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
-from pipeline.renderer import COMPARED, SequenceRenderer
+from pipeline.renderer import COMPARED, render_sequence
 from pipeline.shading.background import Surroundings
 from stages import simulate
 from stages.common import Run, StageOptions, make_run
@@ -62,13 +62,14 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)
     log.info("render %s: %d frames, %s camera, method %s%s, %dx%d", scene.name, len(frames), p.camera, p.method,
              " + comparison" if p.comparison else "", p.width, p.height)
-    with SequenceRenderer(entry.dir, scene.name, Surroundings.of_scene(scene), run.config, run.device,
-                          refiner) as renderer:
-        files = renderer.render(frames, lambda f: load_frame(sim.path(frame_name(f))), info.particle_radius,
-                                lambda i: camera_for_frame(scene.cameras, p.camera, i, len(frames), p.width,
-                                                           p.height), fps=info.fps / p.frame_stride)
-    per_frame = renderer.timings.per_call_ms()
-    entry.finish(files, renderer.timings.as_dict(), ms_per_frame=per_frame, frames=len(frames), weights=weights)
+    sim_dir = sim.dir  # shards carry a path, not the entry
+    files, timings = render_sequence(entry.dir, scene.name, Surroundings.of_scene(scene), run.config, run.device,
+                                     refiner, frames, lambda f: load_frame(sim_dir / frame_name(f)),
+                                     info.particle_radius, lambda i: camera_for_frame(scene.cameras, p.camera, i,
+                                                                                      len(frames), p.width, p.height),
+                                     fps=info.fps / p.frame_stride)
+    per_frame = timings.per_call_ms()
+    entry.finish(files, timings.as_dict(), ms_per_frame=per_frame, frames=len(frames), weights=weights)
     log.info("render %s: %d frames -> %s (%s)", scene.name, len(frames), entry.dir,
              ", ".join(f"{k} {v:.0f} ms" for k, v in per_frame.items()))
     return entry

@@ -22,7 +22,7 @@ from pipeline.config import Config, ConfigError, Loaded, load
 from pipeline.device import choose_device
 from pipeline.frames import frame_name, load_frame, sequence_bounds
 from pipeline.particles.sequence import find_sequence, parse_frame_range
-from pipeline.renderer import SequenceRenderer
+from pipeline.renderer import render_sequence
 from pipeline.shading.background import Surroundings
 from pipeline.sim.runner import import_sequence
 from pipeline.sph import IMPORT_PADDING_RADII
@@ -99,11 +99,11 @@ def main(opts: StageOptions, req: Request) -> None:
                  seq.numbers[-1], len(seq), req.pattern, p.width, p.height, req.camera, p.method)
         around = Surroundings(tuple(lo - IMPORT_PADDING_RADII * radius), tuple(hi + IMPORT_PADDING_RADII * radius),
                               walls=False)
-        with SequenceRenderer(entry.dir, name, around, loaded.config, run.device, refiner) as renderer:
-            outputs = renderer.render(indices, lambda i: load_frame(sim.path(frame_name(i))), radius,
-                                      lambda i: cams[i])
-        entry.finish(outputs, renderer.timings.as_dict(), ms_per_frame=renderer.timings.per_call_ms(),
-                     frames=len(indices), weights=weights)
+        sim_dir = sim.dir  # shards carry a path, not the entry
+        outputs, timings = render_sequence(entry.dir, name, around, loaded.config, run.device, refiner, indices,
+                                           lambda i: load_frame(sim_dir / frame_name(i)), radius, lambda i: cams[i])
+        entry.finish(outputs, timings.as_dict(), ms_per_frame=timings.per_call_ms(), frames=len(indices),
+                     weights=weights)
     out = Path(req.out)
     for i, number in zip(indices, seq.numbers, strict=True):
         cache.publish(entry.path(f"frames/{frame_name(i, 'exr')}"), out / frame_name(number, "exr"))

@@ -24,27 +24,28 @@ def test_shards_cover_everything_once_in_order():
 
 
 @pytest.mark.slow
-def test_ray_dataset_and_evaluate_equal_a_serial_run(tiny_dam, tmp_path):
+def test_ray_dataset_render_and_evaluate_equal_a_serial_run(tiny_dam, tmp_path):
     pytest.importorskip("ray")
     body = yaml.safe_load(tiny_dam.read_text())
     body["dataset"] = {"width": 48, "height": 48, "frame_stride": 2, "holdout_scenes": ["tiny_dam"]}
     body["evaluate"] = {"methods": ["bilateral", "nrf"], "frames_per_sequence": 2}
-    body["render"] = {"width": 48, "height": 48}
+    body["render"] = {"width": 48, "height": 48, "method": "nrf", "comparison": False}
     serial = tiny_dam.parent / "data"
     tiny_dam.write_text(yaml.safe_dump(body))
     body["data_dir"] = str(tmp_path / "ray_data")
     body["scene_dir"] = str(tiny_dam.parent / "scenes")
     (tmp_path / "ray.yaml").write_text(yaml.safe_dump(body))
-    for stage in ("dataset", "evaluate"):
+    for stage in ("dataset", "render", "evaluate"):
         assert cli.main([stage, "--config", str(tiny_dam)]) == 0
         assert cli.main([stage, "--config", str(tmp_path / "ray.yaml"), "--executor", "ray"]) == 0
-    (a,) = (serial / "dataset").iterdir()
-    (b,) = (tmp_path / "ray_data" / "dataset").iterdir()
-    assert a.name == b.name, "the executor is not part of the key: both runs fill the same entry"
-    files = sorted(p.relative_to(a) for p in a.rglob("*.exr"))
-    assert len(files) == 6 and files == sorted(p.relative_to(b) for p in b.rglob("*.exr"))
-    for f in files:
-        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    for stage, count in (("dataset", 6), ("render", 6)):
+        (a,) = (serial / stage).iterdir()
+        (b,) = (tmp_path / "ray_data" / stage).iterdir()
+        assert a.name == b.name, "the executor is not part of the key: both runs fill the same entry"
+        files = sorted(p.relative_to(a) for p in a.rglob("*.exr"))
+        assert len(files) == count and files == sorted(p.relative_to(b) for p in b.rglob("*.exr"))
+        for f in files:
+            assert (a / f).read_bytes() == (b / f).read_bytes(), f
 
     def metrics(root):
         (entry,) = (root / "evaluate").iterdir()
