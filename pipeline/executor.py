@@ -39,6 +39,7 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
         import ray
     except ImportError:
         raise RuntimeError("executor 'ray' needs Ray: pip install 'deep-ssfr[scale]' (or ray)") from None
+    address = address or os.environ.get("RAY_ADDRESS", "")
     started = not ray.is_initialized()
     if started:
         ray.init(address=address or None, num_cpus=None if address else os.cpu_count(), include_dashboard=False,
