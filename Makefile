@@ -14,7 +14,7 @@ STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup test lint demo simulate dataset train ship render evaluate export bench cache-ls clean-cache
+.PHONY: setup test lint demo simulate dataset train train-ddp ship render evaluate export bench cache-ls clean-cache
 
 setup: $(VENV)/.installed
 
@@ -47,6 +47,14 @@ simulate dataset train ship render evaluate demo: setup
 
 export: setup
 	$(CLI) export $(STAGE_ARGS) --format $(FORMAT)
+
+# `make train` over NPROC data-parallel processes (gloo on the CPU, nccl with one GPU each); several
+# nodes: TORCHRUN_ARGS="--nnodes 2 --rdzv-backend c10d --rdzv-endpoint HOST:29400 --rdzv-id RUN"
+# on every node (docs/training_at_scale.md)
+NPROC ?= 2
+TORCHRUN_ARGS ?= --standalone
+train-ddp: setup
+	$(VENV)/bin/torchrun $(TORCHRUN_ARGS) --nproc_per_node $(NPROC) -m stages.train $(STAGE_ARGS)
 
 bench: setup
 	$(PY) -m pip install -q -e '.[dev,bench]'

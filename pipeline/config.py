@@ -342,6 +342,17 @@ class TrainConfig:
     """Use autocast on CUDA (ignored on the CPU)."""
     threads: int = Field(0, ge=0)
     """torch CPU threads (0: one per core)."""
+    data: Literal["memory", "disk"] = "memory"
+    """Where training crops come from: 'memory' decodes every training frame up front (about 33 MiB
+    per 1024 x 1024 frame, ~94 GiB at the paper's scale); 'disk' reads crops lazily from the
+    dataset EXRs in DataLoader workers, so memory stays bounded (``loader_workers`` x
+    ``cached_frames`` frames). The two draw different (equally distributed) crops, see
+    docs/training_at_scale.md."""
+    loader_workers: int = Field(2, ge=0)
+    """DataLoader worker processes per training process that decode EXRs ('disk' data; 0: read in
+    the training process)."""
+    cached_frames: int = Field(4, ge=0)
+    """Decoded frames each reader keeps for its next crops ('disk' data; 0: decode every time)."""
 
 
 @dataclass(frozen=True, config=_RULES)

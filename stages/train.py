@@ -1,7 +1,9 @@
 """``make train``: train the refiner on the cached dataset, validating every epoch.
 
 Writes ``data/train/<config>-<key>/`` (checkpoints, metrics, sheets: ``pipeline.model.train``).
-A killed run resumes from ``last.pt``; raising ``train.epochs`` continues a finished run.
+A killed run resumes from ``last.pt``; raising ``train.epochs`` continues a finished run. Under
+``torchrun`` (``make train-ddp``) rank 0 alone claims, checks and finishes the cache entry (its lock
+would make the others queue behind the training they are part of) and tells the others the folder.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from pathlib import Path
 
 from pipeline import cache
 from pipeline.config import to_dict
+from pipeline.model import distributed
 from pipeline.model.train import fit
 from stages import dataset
 from stages.common import Run, StageError, StageOptions, make_run
@@ -51,7 +54,8 @@ def collect(run: Run) -> tuple[dict[str, str], list[Path], list[Path]]:
 def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
     """Keyed on the training config (except ``epochs``: more epochs continue a run) and the data."""
     config = to_dict(run.config.train)
-    config.pop("epochs")
+    for how_not_what in ("epochs", "loader_workers", "cached_frames"):  # they do not change the weights
+        config.pop(how_not_what)
     config["seed"] = run.config.seed
     config["holdout_scenes"] = list(run.config.dataset.holdout_scenes)
     name = Path(run.loaded.path).stem
@@ -61,16 +65,27 @@ def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
 def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     """Train (or resume) until ``train.epochs``; returns the entry holding the checkpoints."""
     cfg = run.config.train
-    keys, train_paths, val_paths = collect(run)
+    world = distributed.start(run.device)
+    if not world.is_main:
+        logging.getLogger("deep_ssfr").setLevel(logging.WARNING)  # rank 0 tells the story
+    keys, train_paths, val_paths = collect(run)  # concurrent ranks queue on the dataset entries' locks
     entry = train_entry(run, keys)
-    entry.begin(force=force, reopen=True)  # a finished run with fewer epochs continues
-    if not force and entry.is_complete() and entry.manifest().get("epochs", 0) >= cfg.epochs:
-        entry.release()
-        log.info("train: cached (%d epochs) in %s", cfg.epochs, entry.dir)
+    folder = None
+    if world.is_main:
+        entry.begin(force=force, reopen=True)  # a finished run with fewer epochs continues
+        if not force and entry.is_complete() and entry.manifest().get("epochs", 0) >= cfg.epochs:
+            entry.release()
+            log.info("train: cached (%d epochs) in %s", cfg.epochs, entry.dir)
+        else:
+            folder = str(entry.dir)  # a forced run's folder is rank 0's own (named by its pid)
+    folder = world.share(folder)
+    if folder is None:
         return entry
-    best = fit(entry.dir, cfg, run.config.seed, train_paths, val_paths, run.device)
-    entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=cfg.epochs,
-                 best_val_mean_deg=best)
+    best = fit(Path(folder), cfg, run.config.seed, train_paths, val_paths, run.device)
+    if world.is_main:
+        entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=cfg.epochs,
+                     best_val_mean_deg=best, processes=world.size)
+    world.barrier()  # every rank returns once the manifest is written
     return entry
 
 

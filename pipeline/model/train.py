@@ -3,7 +3,9 @@
 Writes into one folder: ``last.pt`` and ``best.pt`` (weights, model arguments, config, epoch,
 optimiser state; atomic), ``metrics.jsonl``, ``sheets/epoch_NNN.png`` (input | refined | target |
 error), ``loss_curve.png`` and TensorBoard scalars when installed. Each epoch draws from its own
-seeds, so a resumed run makes the same draws a straight one would.
+seeds, so a resumed run makes the same draws a straight one would. Crops come from frames held in
+memory or read from disk (``train.data``); under ``torchrun`` the processes share each global
+batch (``pipeline.model.distributed``) and rank 0 alone writes.
 """
 
 from __future__ import annotations
@@ -21,7 +23,8 @@ from tqdm import tqdm
 from pipeline.cache import atomic_path
 from pipeline.config import TrainConfig
 from pipeline.frames import spread
-from pipeline.model.data import Frame, load_frame, random_crops
+from pipeline.model import distributed
+from pipeline.model.data import CropDataset, DiskBatches, Frame, MemoryBatches, load_frame
 from pipeline.model.trainer import Refiner, seed_everything, validation_metrics
 from pipeline.plots import error_sheet, loss_curves
 
@@ -45,59 +48,99 @@ def load_checkpoint(refiner: Refiner, path: Path) -> tuple[int, float, list]:
 
 def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_paths: list[Path],
         device: str) -> float:
-    """Train (or resume) until ``cfg.epochs``; returns the best validation mean error (degrees)."""
+    """Train (or resume) until ``cfg.epochs``; returns the best validation mean error (degrees).
+
+    Under ``torchrun`` every process runs this: they join one process group, train the same
+    networks (DistributedDataParallel) on slices of each global batch of ``cfg.batch_size`` crops,
+    and rank 0 alone validates and writes; the others wait for it at the end of each epoch."""
     folder = Path(folder)
+    world = distributed.start(device)
+    device = world.device(device)
+    main = world.is_main
     last = folder / "last.pt"
     refiner = Refiner(cfg, device, seed=seed)
     start_epoch, best, history = load_checkpoint(refiner, last) if last.exists() else (0, math.inf, [])
     if start_epoch >= cfg.epochs:
         return best
-    if start_epoch:
+    if cfg.batch_size % world.size:
+        raise TrainingError(f"train.batch_size is {cfg.batch_size}, which does not split over {world.size} "
+                            f"processes; set it to a multiple of {world.size} or change --nproc_per_node")
+    if start_epoch and main:
         log.info("train: resuming after epoch %d", start_epoch)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    log.info("train: loading %d training and %d validation frames", len(train_paths), len(val_paths))
-    frames = [load_frame(p, cfg.auxiliary_features, cfg.input_splat)
-              for p in tqdm(train_paths, desc="load", unit="frame", leave=False)]
-    val_frames: list[Frame] = [load_frame(p, cfg.auxiliary_features, cfg.input_splat)
-                               for p in spread(val_paths, cfg.val_frames)] or frames[:2]
-    height, width = frames[0].inputs.shape[1:]
+    steps = max(1, math.ceil(len(train_paths) * cfg.crops_per_frame / cfg.batch_size))
+    source = _crop_source(cfg, seed, train_paths, steps, world, refiner.device)
+    val_frames: list[Frame] = []
+    if main:
+        val_frames = [load_frame(p, cfg.auxiliary_features, cfg.input_splat)
+                      for p in spread(val_paths, cfg.val_frames) or train_paths[:2]]
+    height, width = source.frame_size
     if cfg.crop > min(height, width):
         raise TrainingError(f"train.crop is {cfg.crop} px but the dataset's images are {width}x{height}; set "
                             f"train.crop to at most {min(height, width)} or render a larger dataset "
                             "(dataset.width/height)")
-    steps = max(1, math.ceil(len(frames) * cfg.crops_per_frame / cfg.batch_size))
-    log.info("train: generator %.2f M parameters, %d steps/epoch of %d crops of %d px on %s",
-             sum(p.numel() for p in refiner.generator.parameters()) / 1e6, steps, cfg.batch_size, cfg.crop, device)
-    board = _tensorboard(folder / "tensorboard")
+    if main:
+        log.info("train: generator %.2f M parameters, %d steps/epoch of %d crops of %d px on %s (%s data, "
+                 "%d process%s)", sum(p.numel() for p in refiner.generator.parameters()) / 1e6, steps,
+                 cfg.batch_size, cfg.crop, device, cfg.data, world.size, "es" if world.size > 1 else "")
+    if world.size > 1:
+        refiner.distribute()
+    board = _tensorboard(folder / "tensorboard") if main else None
     for epoch in tqdm(range(start_epoch + 1, cfg.epochs + 1), desc="train", unit="epoch",
-                      initial=start_epoch, total=cfg.epochs):
-        rng = np.random.default_rng([seed, epoch])
+                      initial=start_epoch, total=cfg.epochs, disable=not main):
         seed_everything(seed * 100_003 + epoch)
         sums: dict[str, float] = {}
         t0 = time.perf_counter()
-        for _ in tqdm(range(steps), desc=f"epoch {epoch}", unit="step", leave=False):
-            x, y = random_crops(frames, cfg.crop, cfg.batch_size, rng)
+        for x, y in tqdm(source.batches(epoch, steps), desc=f"epoch {epoch}", unit="step", total=steps,
+                         leave=False, disable=not main):
             for k, v in refiner.train_step(x, y).items():
                 sums[k] = sums.get(k, 0.0) + v / steps
         refiner.end_epoch()
+        sums = world.mean(sums)
         seconds = time.perf_counter() - t0
-        metrics, preds = validation_metrics(refiner.generator, val_frames, refiner.device)
-        record = {"epoch": epoch, **sums, "val": metrics, "train_seconds": round(seconds, 2),
-                  "images_per_second": round(steps * cfg.batch_size / seconds, 2),
-                  "lr": refiner.opt_g.param_groups[0]["lr"]}
-        history.append(record)
-        score = metrics["refined"]["mean_deg"]
-        improved, best = score < best, min(best, score)
-        state = refiner.state(epoch, {"best": best, "history": history, "metrics": metrics})
-        for name in ("last.pt", "best.pt") if improved else ("last.pt",):
-            with atomic_path(folder / name) as tmp:
-                torch.save(state, tmp)
-        with atomic_path(folder / "metrics.jsonl") as tmp:
-            tmp.write_text("".join(json.dumps(h) + "\n" for h in history))
-        error_sheet(folder / f"sheets/epoch_{epoch:03d}.png", val_frames[:3], preds[:3])
-        _log_epoch(board, record)
-    loss_curves(folder / "loss_curve.png", history)
+        if main:
+            metrics, preds = validation_metrics(refiner.generator, val_frames, refiner.device)
+            record = {"epoch": epoch, **sums, "val": metrics, "train_seconds": round(seconds, 2),
+                      "images_per_second": round(steps * cfg.batch_size / seconds, 2),
+                      "lr": refiner.opt_g.param_groups[0]["lr"], "processes": world.size}
+            history.append(record)
+            best = _write_epoch(folder, refiner, history, best, val_frames, preds)
+            _log_epoch(board, record)
+        world.barrier()  # the others wait while rank 0 validates and writes
+    if main:
+        loss_curves(folder / "loss_curve.png", history)
+    return world.share(best)
+
+
+def _crop_source(cfg: TrainConfig, seed: int, paths: list[Path], steps: int, world: distributed.World,
+                 device: torch.device) -> MemoryBatches | DiskBatches:
+    """This process's batches: every frame decoded into memory, or crops read from disk by DataLoader workers."""
+    if cfg.data == "disk":
+        dataset = CropDataset(paths, cfg.crop, seed, cfg.auxiliary_features, cfg.input_splat, cfg.cached_frames)
+        return DiskBatches(dataset, steps, cfg.batch_size, cfg.loader_workers, world.rank, world.size,
+                           pin_memory=device.type == "cuda")
+    if world.is_main:
+        log.info("train: loading %d training frames", len(paths))
+    frames = [load_frame(p, cfg.auxiliary_features, cfg.input_splat)
+              for p in tqdm(paths, desc="load", unit="frame", leave=False, disable=not world.is_main)]
+    return MemoryBatches(frames, cfg.crop, cfg.batch_size, seed, world.rank, world.size)
+
+
+def _write_epoch(folder: Path, refiner: Refiner, history: list[dict], best: float, val_frames: list[Frame],
+                 preds: list[np.ndarray]) -> float:
+    """Checkpoints (``best.pt`` too when the epoch improved), metrics and sheet of the last epoch of
+    ``history``; returns the best validation score so far."""
+    record = history[-1]
+    score = record["val"]["refined"]["mean_deg"]
+    improved, best = score < best, min(best, score)
+    state = refiner.state(record["epoch"], {"best": best, "history": history, "metrics": record["val"]})
+    for name in ("last.pt", "best.pt") if improved else ("last.pt",):
+        with atomic_path(folder / name) as tmp:
+            torch.save(state, tmp)
+    with atomic_path(folder / "metrics.jsonl") as tmp:
+        tmp.write_text("".join(json.dumps(h) + "\n" for h in history))
+    error_sheet(folder / f"sheets/epoch_{record['epoch']:03d}.png", val_frames[:3], preds[:3])
     return best
 
 

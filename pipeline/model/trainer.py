@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch.nn.parallel import DistributedDataParallel
 
 from pipeline.config import TrainConfig, to_dict
 from pipeline.model.data import input_channel_count
@@ -42,31 +43,50 @@ class Refiner:
         self.sched_d = torch.optim.lr_scheduler.ExponentialLR(self.opt_d, gamma=cfg.lr_decay)
         self.amp = cfg.mixed_precision and self.device.type == "cuda"
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp)
+        self.train_generator: torch.nn.Module = self.generator
+        """What ``train_step`` runs: the generator, or its DistributedDataParallel wrapper."""
+        self.train_discriminator: torch.nn.Module = self.discriminator
+        """What ``train_step`` runs: the discriminator, or its DistributedDataParallel wrapper."""
+
+    def distribute(self) -> None:
+        """Wrap both networks in DistributedDataParallel (the process group must be up): gradients
+        are averaged over the processes, so their copies stay equal. Checkpoints keep saving the
+        unwrapped modules, whose keys ``load_generator`` reads. Batch-norm statistics stay per
+        process (each sees its slice of the global batch) and are not broadcast: only rank 0's are
+        saved, and training-mode normalisation never reads them."""
+        ids = [self.device.index] if self.device.type == "cuda" else None
+        self.train_generator = DistributedDataParallel(self.generator, device_ids=ids)
+        self.train_discriminator = DistributedDataParallel(self.discriminator, device_ids=ids)
+        for wrapped in (self.train_generator, self.train_discriminator):
+            wrapped.broadcast_buffers = False  # after construction: the argument is deprecated in torch 2.13
 
     def _autocast(self):
         return torch.autocast("cuda", dtype=torch.float16) if self.amp else nullcontext()
 
-    def train_step(self, inputs: np.ndarray, target: np.ndarray) -> dict[str, float]:
-        """One discriminator and one generator update on a batch (N x C x H x W arrays)."""
+    def train_step(self, inputs: np.ndarray | torch.Tensor, target: np.ndarray | torch.Tensor) -> dict[str, float]:
+        """One discriminator and one generator update on a batch (N x C x H x W arrays or tensors)."""
         cfg = self.cfg
-        x = torch.from_numpy(inputs).to(self.device)
-        y = torch.from_numpy(target).to(self.device)
+        generator, discriminator = self.train_generator, self.train_discriminator
+        x = torch.as_tensor(inputs).to(self.device, non_blocking=True)
+        y = torch.as_tensor(target).to(self.device, non_blocking=True)
         cond = x[:, :3]
-        self.generator.train()
-        self.discriminator.train()
+        generator.train()
+        discriminator.train()
         with self._autocast():
-            fake = self.generator(x)
+            fake = generator(x)
         use_gan = cfg.lambda_adversarial > 0
         loss_d = torch.zeros((), device=self.device)
         if use_gan:
             with self._autocast():
-                loss_d = 0.5 * (adversarial_loss(self.discriminator(cond, y), True)
-                                + adversarial_loss(self.discriminator(cond, fake.detach()), False))
+                loss_d = 0.5 * (adversarial_loss(discriminator(cond, y), True)
+                                + adversarial_loss(discriminator(cond, fake.detach()), False))
             self.opt_d.zero_grad(set_to_none=True)
             self.scaler.scale(loss_d).backward()
             self.scaler.step(self.opt_d)
-        with self._autocast():
-            adv = adversarial_loss(self.discriminator(cond, fake), True) if use_gan else torch.zeros(())
+        # the discriminator's own gradients of this pass are thrown away: do not average them
+        unsynced = discriminator.no_sync() if isinstance(discriminator, DistributedDataParallel) else nullcontext()
+        with self._autocast(), unsynced:
+            adv = adversarial_loss(discriminator(cond, fake), True) if use_gan else torch.zeros(())
             lc = content_loss(fake.float(), y, cfg.content_loss)
             ln = normal_constraint_loss(fake.float())
             loss_g = cfg.lambda_adversarial * adv + cfg.lambda_content * lc + cfg.lambda_normal * ln

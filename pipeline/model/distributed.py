@@ -1,0 +1,108 @@
+"""Data-parallel training over the processes ``torchrun`` starts (``torch.distributed``).
+
+``torchrun --nproc_per_node N`` sets ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK`` and the rendezvous
+address in each process's environment; :func:`start` joins them into one process group (gloo on
+the CPU, nccl on CUDA, one GPU per local rank). Without those variables it returns a world of one
+process and training runs exactly as before. Waits and small messages (a folder name, the epoch's
+mean losses) go through a second gloo group with a long timeout, so the other ranks can wait while
+rank 0 queues for a cache entry's lock or validates an epoch.
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+from dataclasses import dataclass
+from datetime import timedelta
+from typing import Any
+
+import torch
+import torch.distributed as dist
+
+WAIT_TIMEOUT = timedelta(days=7)
+"""How long a rank waits for rank 0 at a barrier (rank 0 may queue behind another run of the config)."""
+
+
+@dataclass(frozen=True)
+class World:
+    """This process's place among the training processes (one process: rank 0 of 1)."""
+
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+    @property
+    def is_main(self) -> bool:
+        """Rank 0: the process that writes checkpoints, metrics, sheets and logs."""
+        return self.rank == 0
+
+    def device(self, device: str) -> str:
+        """This process's torch device: ``cuda:<local rank>`` for a CUDA run of several, else ``device``."""
+        if self.size > 1 and torch.device(device).type == "cuda":
+            return f"cuda:{self.local_rank}"
+        return device
+
+    def barrier(self) -> None:
+        """Wait until every process gets here (no-op for one process)."""
+        if self.size > 1:
+            dist.barrier(group=_wait_group())
+
+    def share(self, value: Any) -> Any:
+        """Rank 0's ``value`` (any picklable object) on every process."""
+        if self.size == 1:
+            return value
+        box = [value]
+        dist.broadcast_object_list(box, src=0, group=_wait_group())
+        return box[0]
+
+    def mean(self, values: dict[str, float]) -> dict[str, float]:
+        """Each value averaged over the processes (every process passes the same keys)."""
+        if self.size == 1 or not values:
+            return values
+        keys = sorted(values)
+        total = torch.tensor([values[k] for k in keys], dtype=torch.float64)
+        dist.all_reduce(total, group=_wait_group())
+        return {k: float(v) / self.size for k, v in zip(keys, total.tolist(), strict=True)}
+
+
+_WORLD: World | None = None
+_WAIT: Any = None
+
+
+def _wait_group() -> Any:
+    """The gloo group with the long timeout (created by :func:`start`)."""
+    if _WAIT is None:
+        raise RuntimeError("distributed training: start() was not called in this process")
+    return _WAIT
+
+
+def start(device: str) -> World:
+    """Join the processes ``torchrun`` started (once per process; later calls return the same world).
+
+    ``device`` is the run's device kind: ``cuda`` selects nccl and the GPU of this local rank,
+    anything else gloo. A world of one process needs no process group and makes none."""
+    global _WORLD, _WAIT
+    if _WORLD is not None:
+        return _WORLD
+    size = int(os.environ.get("WORLD_SIZE", "1"))
+    if size <= 1:
+        _WORLD = World()
+        return _WORLD
+    rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    cuda = torch.device(device).type == "cuda"
+    if cuda:
+        torch.cuda.set_device(local_rank)
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if cuda else "gloo")
+        atexit.register(stop)
+    _WAIT = dist.new_group(backend="gloo", timeout=WAIT_TIMEOUT)
+    _WORLD = World(rank, dist.get_world_size(), local_rank)
+    return _WORLD
+
+
+def stop() -> None:
+    """Leave the process group (at exit; a later :func:`start` joins again)."""
+    global _WORLD, _WAIT
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+    _WORLD, _WAIT = None, None
