@@ -35,6 +35,10 @@ _RULES = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 Vec3 = tuple[float, float, float]
+Method = Literal["gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "mesh"]
+"""The normal-map methods (``pipeline.methods``): screen-space filters of sphere splats, ellipsoid
+splats with and without the narrow-range filter, the cGAN refiner, and the reference mesh."""
+METHODS: tuple[str, ...] = typing.get_args(Method)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -365,7 +369,7 @@ class RenderConfig:
     """Output height (px)."""
     camera: Literal["static", "orbit"] = "static"
     """Camera path to render."""
-    method: Literal["refined", "gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "mesh"] = "refined"
+    method: Method = "refined"
     """Normal-map source."""
     weights: str = "shipped"
     """Generator: 'shipped' (in the package), 'trained' (this config's best checkpoint, training

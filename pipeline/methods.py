@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.camera import Camera
-from pipeline.config import DatasetConfig, RenderConfig
+from pipeline.config import METHODS, DatasetConfig, RenderConfig
 from pipeline.evaluate.metrics import refined_mask
 from pipeline.exr import stack
 from pipeline.model.data import input_channels, make_input
@@ -26,7 +26,6 @@ from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstru
 from pipeline.timing import Timings
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 
-METHODS = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "mesh")
 ANISO_METHODS = ("aniso", "aniso_nrf")
 NAMES = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "aniso": "ellipsoids",
          "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)", "mesh": "mesh (reference)"}

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 import typer
 
-from pipeline.methods import METHODS
+from pipeline.config import METHODS
 from stages.common import StageOptions, make_run, stage_main
 
 app = typer.Typer(name="deep-ssfr", no_args_is_help=True, add_completion=False, rich_markup_mode=None,

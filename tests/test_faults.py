@@ -317,7 +317,7 @@ def test_two_stages_killed_at_random_points_resume_to_a_clean_run(tmp_path):
         from tests.conftest import write_config
 
         return write_config(folder, {"scenes": ["tiny_dam"], "seed": 3,
-                                     "simulate": {"particle_radius": 0.0125, "frames": 40},
+                                     "simulate": {"particle_radius": 0.0125, "frames": 24},
                                      "dataset": {"width": 48, "height": 48, "frame_stride": 1, "workers": 2}},
                             {"tiny_dam": scene})
 
