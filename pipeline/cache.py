@@ -52,17 +52,14 @@ def import_closure(module: str) -> tuple[str, ...]:
         name = todo.pop()
         if name in seen or name.split(".")[0] not in PROJECT_PACKAGES:
             continue
-        try:
-            spec = importlib.util.find_spec(name)
-        except (ImportError, AttributeError, ValueError):  # "pkg.module.function": not a module
-            continue
-        if spec is None or spec.origin is None or not spec.origin.endswith(".py"):
+        origin = module_file(name)
+        if origin is None:  # "pkg.module.function": not a module
             continue
         seen.add(name)
         parts = name.split(".")
-        package = parts if spec.submodule_search_locations else parts[:-1]
+        package = parts if origin.name == "__init__.py" else parts[:-1]
         todo += [".".join(parts[:k]) for k in range(1, len(parts))]  # parent packages' __init__
-        tree = ast.parse(Path(spec.origin).read_text(), spec.origin)
+        tree = ast.parse(origin.read_text(), str(origin))
         tree.body = [n for n in tree.body if not _is_main_guard(n)]
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
@@ -72,6 +69,20 @@ def import_closure(module: str) -> tuple[str, ...]:
                     if node.level else (node.module or "")
                 todo += [base] + [f"{base}.{a.name}" for a in node.names]
     return tuple(sorted(seen))
+
+
+def module_file(name: str) -> Path | None:
+    """The source file of project module ``name`` (``pkg/mod.py`` or ``pkg/mod/__init__.py``),
+    found on disk next to its top-level package without importing it (importing would load Warp
+    and torch just to hash the code), or None when ``name`` is not a module."""
+    spec = importlib.util.find_spec(name.split(".")[0])  # the top-level package alone: no heavy imports
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    base = Path(next(iter(spec.submodule_search_locations))).joinpath(*name.split(".")[1:])
+    for candidate in (base / "__init__.py", base.with_suffix(".py")):
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def _is_main_guard(node: ast.stmt) -> bool:
@@ -87,9 +98,8 @@ def code_version(stage_module: str) -> str:
     computed once per process (stages ask for entries many times, the source does not change)."""
     digest = hashlib.sha256()
     for name in import_closure(stage_module):
-        path = Path(importlib.util.find_spec(name).origin)
         digest.update(name.encode())
-        digest.update(path.read_bytes())
+        digest.update(module_file(name).read_bytes())
     return digest.hexdigest()[:16]
 
 
