@@ -18,6 +18,7 @@ from pipeline.particles import read_particles
 from pipeline.particles.sequence import find_sequence
 from pipeline.sph import IMPORT_PADDING_RADII, WATER_DENSITY
 from pipeline.timing import Timings
+from pipeline.writer import BackgroundWriter
 
 log = logging.getLogger("deep_ssfr")
 
@@ -76,13 +77,14 @@ def simulate_sequence(folder: Path, scene: SceneConfig, params: SimulateConfig, 
     bar = tqdm(range(done + 1, params.frames + 1), desc=f"simulate {scene.name}", unit="frame",
                initial=done, total=params.frames)
     try:
-        for frame in bar:
-            with timings("solve"):
-                stats = solver.advance_frame(frame)
-            particle_steps += stats.particles * params.substeps
-            with timings("write"):
-                save_frame(folder / frame_name(frame), *solver.state())
-            bar.set_postfix(particles=stats.particles, rho_max=f"{stats.max_density_ratio:.2f}")
+        with BackgroundWriter() as writer:  # a frame's file is written while the next one is solved
+            for frame in bar:
+                with timings("solve"):
+                    stats = solver.advance_frame(frame)
+                particle_steps += stats.particles * params.substeps
+                with timings("state"):
+                    writer.submit(save_frame, folder / frame_name(frame), *solver.state())
+                bar.set_postfix(particles=stats.particles, rho_max=f"{stats.max_density_ratio:.2f}")
     except SimulationError as exc:
         raise SimulationFailed(f"simulate {scene.name}: {exc}; lower the time step (substeps) or "
                                "artificial_pressure_k") from None
