@@ -278,6 +278,9 @@ class DatasetConfig:
     """Density grid resolution (cells per particle radius)."""
     max_grid_cells: int = Field(320, ge=16)
     """Cap on the grid size per axis (cells); the paper used about 270."""
+    marching_cubes: Literal["auto", "skimage", "warp"] = "auto"
+    """Marching cubes of the mesh target: scikit-image on the host, or Warp's kernels on the grid's
+    device ('auto': Warp on CUDA, scikit-image on the CPU, where it is the faster)."""
     target: Literal["mesh", "raytrace"] = "mesh"
     """The reference surface: 'mesh' (marching cubes of the density on a grid, ray-cast) or
     'raytrace' (each pixel's ray marched through the density to the iso-level, no grid)."""

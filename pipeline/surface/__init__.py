@@ -130,6 +130,33 @@ def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetCo
                       (extents.numpy() / scale).astype(np.float32))
 
 
+def marching_cubes(grid: np.ndarray, level: float, cell: float, origin: np.ndarray, device: str,
+                   backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (world, float32) and triangles of the ``level`` set of a density grid.
+
+    ``backend``: 'skimage' (``measure.marching_cubes``, the reference targets were built with it),
+    'warp' (``warp.geometry.IsoSurfaceMarchingCubes``: kernels on the grid's device, no copy to
+    the host on a GPU) or 'auto' (warp on CUDA, skimage on the CPU)."""
+    use_warp = backend == "warp" or (backend == "auto" and str(device).startswith("cuda"))
+    if not use_warp:
+        verts, faces, _, _ = measure.marching_cubes(grid, level=level, spacing=(cell, cell, cell),
+                                                    allow_degenerate=False)
+        return (verts + origin).astype(np.float32), faces.astype(np.int32)
+    from warp.geometry import IsoSurfaceMarchingCubes
+
+    field = wp.array(np.ascontiguousarray(grid, np.float32), dtype=float, device=device)
+    upper = origin + cell * (np.asarray(grid.shape) - 1)
+    verts, tris = IsoSurfaceMarchingCubes.extract(field, level, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
+    return verts.numpy().astype(np.float32), tris.numpy().reshape(-1, 3).astype(np.int32)
+
+
+def _grid_normals(grid: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Outward (descending) unit gradient of the grid at the nearest nodes of fractional indices."""
+    at = tuple(np.clip(np.rint(index).astype(int), 0, np.asarray(grid.shape) - 1).T)
+    n = -np.stack([g[at] for g in np.gradient(grid)], axis=-1)
+    return (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+
+
 def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volume: float, cell: float,
                  launch: Launcher, device: str) -> tuple[np.ndarray, np.ndarray]:
     """The anisotropic density on a grid covering every ellipsoid; returns (grid, origin)."""
@@ -185,16 +212,14 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
     if grid.max() <= p.iso_level:
         return _empty()
     with timings("marching_cubes"):
-        verts, faces, grid_normals, _ = measure.marching_cubes(grid, level=p.iso_level,
-                                                               spacing=(cell, cell, cell), allow_degenerate=False)
-    verts = (verts + origin).astype(np.float32)
+        verts, faces = marching_cubes(grid, p.iso_level, cell, origin, device, p.marching_cubes)
     with timings("normals"):
         normals = density_normals(centres, g, extents, verts, launch, device)
-    # where the analytic gradient vanishes (never in practice) fall back to the grid's normals,
-    # which skimage 0.26 orients along the descending gradient: out of the fluid
+    # where the analytic gradient vanishes (never in practice) fall back to the grid's gradient
     bad = np.linalg.norm(normals, axis=1) < 0.5
-    normals[bad] = grid_normals[bad]
-    mesh = SurfaceMesh(verts, faces.astype(np.int32), normals.astype(np.float32), timings)
+    if bad.any():
+        normals[bad] = _grid_normals(grid, (verts[bad] - origin) / cell)
+    mesh = SurfaceMesh(verts, faces, normals.astype(np.float32), timings)
     return mesh
 
 
