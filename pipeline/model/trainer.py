@@ -86,7 +86,7 @@ class Refiner:
         # the discriminator's own gradients of this pass are thrown away: do not average them
         unsynced = discriminator.no_sync() if isinstance(discriminator, DistributedDataParallel) else nullcontext()
         with self._autocast(), unsynced:
-            adv = adversarial_loss(discriminator(cond, fake), True) if use_gan else torch.zeros(())
+            adv = adversarial_loss(discriminator(cond, fake), True) if use_gan else torch.zeros((), device=self.device)
             lc = content_loss(fake.float(), y, cfg.content_loss)
             ln = normal_constraint_loss(fake.float())
             loss_g = cfg.lambda_adversarial * adv + cfg.lambda_content * lc + cfg.lambda_normal * ln
