@@ -33,7 +33,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
 
 from pipeline.config import DatasetConfig, RenderConfig  # noqa: E402
-from pipeline.exr import write_exr  # noqa: E402
 from pipeline.methods import normal_source, shade_frame  # noqa: E402
 from pipeline.model.data import make_input  # noqa: E402
 from pipeline.model.inference import SHIPPED_WEIGHTS, Refiner  # noqa: E402
@@ -76,10 +75,10 @@ def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpac
         src.update(normal_source("refined", x, r, cam, p, ss, launch, refiner, timings=t))
         out = shade_frame(src, bg, bg_depth, cam, rp, shader, t)
         if write is not None:
-            write.submit(write_exr, tmp / "frame.exr", out.channels())
+            write.submit(out.write, tmp / "frame.exr", rp, cam, rp.video_fps, 1)
         else:
             with t("exr"):
-                write_exr(tmp / "frame.exr", out.channels())
+                out.write(tmp / "frame.exr", rp, cam, rp.video_fps, 1)
 
     frame()
     t = Timings()

@@ -16,7 +16,7 @@ import numpy as np
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
 from pipeline.evaluate.metrics import refined_mask
-from pipeline.exr import stack
+from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.model.data import input_channels, make_input
 from pipeline.model.inference import Refiner
 from pipeline.parallel import Launcher
@@ -92,6 +92,12 @@ class RenderedFrame:
         if which == "colour":
             return tuple(channel_names({k: PASSES[k] for k in HALF_PASSES}))
         return ()
+
+    def write(self, path, p: RenderConfig, camera: Camera, fps: float, frame: int) -> None:
+        """The frame's EXR as the renderer writes it: every pass, ``render.exr_half`` and
+        ``render.exr_compression``, the camera in the header."""
+        write_exr(path, self.channels(), half=self.half_channels(p.exr_half), compression=p.exr_compression,
+                  attributes=camera_attributes(camera, fps, p.sensor_width_mm, frame))
 
 
 def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,6 @@ from pipeline.camera import Camera
 from pipeline.config import Config, RenderConfig
 from pipeline.device import warp_device
 from pipeline.executor import cluster_cpus, run_tasks, shards
-from pipeline.exr import camera_attributes, write_exr
 from pipeline.frames import frame_name, spread
 from pipeline.media import contact_sheet, label, write_png, write_video
 from pipeline.methods import NAMES, RenderedFrame, motion_pass, normal_source, shade_frame
@@ -100,8 +99,7 @@ class SequenceRenderer:
         main = shaded[p.method]
         exr, preview, *compare = (self.folder / o for o in self.outputs(frame))
         with timings("exr_write"):
-            write_exr(exr, main.channels(), half=main.half_channels(p.exr_half), compression=p.exr_compression,
-                      attributes=camera_attributes(camera, fps, p.sensor_width_mm, frame))
+            main.write(exr, p, camera, fps, frame)
         write_png(preview, tonemap(main.beauty, p.exposure))
         if compare:
             tiles = [label(tonemap(shaded[m].beauty, p.exposure), NAMES[m]) for m in COMPARED]
