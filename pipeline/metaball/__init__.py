@@ -1,0 +1,261 @@
+"""The metaball system of Horvath 2019 ("Image-Space Metaballs Using Deep Learning", master's thesis,
+TU Wien): ray-marched target G-buffers of a metaball field, the cheap circle image the network
+sees, and the paper's encodings of both (host side; the kernels are in ``kernels``, the pix2pix
+networks and losses in ``networks``).
+
+Arrays follow ``pipeline.camera``: view depth is positive along -Z (0 = empty), normals are unit
+view-space vectors (n_z > 0 facing the camera), pixel (col i, row j) has its centre at
+(i + 0.5, j + 0.5) with row 0 at the top. Lengths (positions, radii, depths, the march step) are in
+scene units, the thesis' units.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from pipeline.camera import Camera
+from pipeline.metaball import kernels as K
+from pipeline.parallel import Launcher
+
+_EMPTY = 1.0e30
+_NO_OWNER = 2**31 - 1
+
+# Row bands of the per-ball kernels per thread: threads take bands as they come free, so balls
+# crowded into a few rows still spread over the cores (as in ``pipeline.screen``).
+BANDS_PER_THREAD = 4
+
+PAPER_FOV_Y_DEG = 60.0
+"""Vertical field of view of the thesis' targets. Its shader's 'FOV 30' is used as tan(30 deg) at the
+image edge (``(uv - 0.5) * 2 * tan(fov)``), so the full angle is 60 degrees."""
+
+TARGET_CHANNELS = ("R", "G", "B", "Z", "N.X", "N.Y", "N.Z")
+"""The 7 channels of ``encode_targets`` and of the generator's output, in order."""
+
+INPUT_CHANNELS = ("R", "G", "B", "Z")
+"""The 4 channels of ``circle_input`` and of the generator's input, in order."""
+
+
+@dataclass(frozen=True)
+class MetaballParams:
+    """Field, march and input-drawing parameters of the metaball system (defaults: the thesis' values
+    where it has one; the cut-off, the bisections and the narrowest outline are ours)."""
+
+    iso_level: float = 1.0
+    """Iso-level c of the surface f(X) = c (dimensionless); an isolated ball's surface has radius r / sqrt(c)."""
+    kernel_radius_radii: float = 4.0
+    """Where each ball's term r^2 / d^2 reaches zero, in that ball's radii; it is tapered smoothly from half of
+    that. 0: the thesis' infinite support (every ball at every sample, cost grows with the ball count)."""
+    depth_near: float = 7.0
+    """Nearest view depth marched and the depth that encodes as 0 (scene units)."""
+    depth_far: float = 25.0
+    """Farthest view depth marched and the depth that encodes as 1 (scene units)."""
+    step: float = 0.01
+    """Ray-march step in view depth (scene units)."""
+    bisections: int = 8
+    """Halvings of the step that holds the first crossing: depth error at most step / 2^(bisections + 1)."""
+    colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Colour (linear RGB in [0, 1]) of every ball when no per-ball colours are given."""
+    outline_width: float = 0.05
+    """Width of a ball's outline in the circle input, a share of its quad's side (twice the circle radius)."""
+    outline_min_px: float = 1.0
+    """Narrowest outline (pixels), so that circles under ten pixels in radius still show; 0 for the thesis'."""
+
+    def __post_init__(self):
+        checks = {"iso_level": self.iso_level > 0, "kernel_radius_radii": self.kernel_radius_radii >= 0,
+                  "depth_near": 0 < self.depth_near < self.depth_far, "step": self.step > 0,
+                  "bisections": self.bisections >= 0, "outline_width": 0 < self.outline_width <= 0.5,
+                  "outline_min_px": self.outline_min_px >= 0}
+        bad = [name for name, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"metaball parameters out of range: {', '.join(f'{b}={getattr(self, b)!r}' for b in bad)}")
+        if self.kernel_radius_radii and self.kernel_radius_radii <= 2.0 / math.sqrt(self.iso_level):
+            raise ValueError(f"kernel_radius_radii={self.kernel_radius_radii} tapers inside an isolated ball's surface "
+                             f"(radius 1/sqrt(iso_level) radii): use more than {2.0 / math.sqrt(self.iso_level):.3g}")
+
+
+def paper_camera(width: int = 512, height: int = 512) -> Camera:
+    """The thesis' camera: at the origin looking down -Z (its +Z, mirrored into our convention) with a
+    60 degree vertical field of view; balls go in front of it at view depths 7 to 25."""
+    return Camera(np.eye(4), PAPER_FOV_Y_DEG, width, height)
+
+
+def minimal_radius(radii: np.ndarray, iso_level: float) -> np.ndarray:
+    """Radius r / sqrt(iso) of each ball's surface in isolation: the smallest it can be, since other
+    balls only add to the field."""
+    return np.asarray(radii, np.float64) / math.sqrt(iso_level)
+
+
+def _balls(positions: np.ndarray, radii, colours: np.ndarray | None,
+           p: MetaballParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Checked float64 positions (N x 3), radii (N) and float32 colours (N x 3)."""
+    pos = np.asarray(positions, np.float64).reshape(-1, 3) if np.size(positions) else np.zeros((0, 3))
+    n = len(pos)
+    rad = np.broadcast_to(np.asarray(radii, np.float64), (n,)).copy()
+    if n and not (np.isfinite(pos).all() and np.isfinite(rad).all() and (rad > 0).all()):
+        raise ValueError("metaballs need finite positions and positive finite radii")
+    if colours is None:
+        col = np.broadcast_to(np.asarray(p.colour, np.float32), (n, 3))
+    else:
+        col = np.asarray(colours, np.float32)
+        if col.shape != (n, 3):
+            raise ValueError(f"colours must be N x 3 for {n} balls, got shape {col.shape}")
+    return pos, rad, np.ascontiguousarray(col, np.float32)
+
+
+def _row_bands(height: int, launch: Launcher) -> list[tuple[int, int]]:
+    """Row bands for the per-ball kernels: one on CUDA or a single thread, several per thread else."""
+    parallel = launch.cpu and launch.threads > 1
+    count = max(1, min(height, BANDS_PER_THREAD * launch.threads)) if parallel else 1
+    bounds = [height * k // count for k in range(count + 1)]
+    return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
+
+
+def _hash_grid(points: wp.array, host_points: np.ndarray, cell: float, device: str) -> wp.HashGrid:
+    """A Warp hash grid over ``points`` with cells of ``cell``, sized to their bounding box."""
+    extent = host_points.max(0) - host_points.min(0)
+    dims = [int(min(128, max(1, math.ceil(e / cell) + 1))) for e in extent]
+    grid = wp.HashGrid(*dims, device=device)
+    grid.build(points, cell)
+    return grid
+
+
+def _support_span(centres_view: np.ndarray, supports: np.ndarray, camera: Camera, p: MetaballParams,
+                  launch: Launcher) -> tuple[wp.array, wp.array]:
+    """Per pixel the view depths where its ray enters its first and leaves its last ball support
+    (1e30 and 0 where it meets none). Without a cut-off, or where a support holds the camera (no
+    splat can bound it), every ray spans the depth range."""
+    w, h = camera.width, camera.height
+    device = launch.device
+    if len(supports) == 0 or np.any(-centres_view[:, 2] <= supports):
+        return (wp.full(w * h, p.depth_near, dtype=float, device=device),
+                wp.full(w * h, p.depth_far, dtype=float, device=device))
+    t_in = wp.full(w * h, _EMPTY, dtype=float, device=device)
+    t_out = wp.zeros(w * h, dtype=float, device=device)
+    args = [wp.array(centres_view.astype(np.float32), dtype=wp.vec3, device=device),
+            wp.array(supports.astype(np.float32), dtype=float, device=device), camera.focal_px, w, h]
+    launch.tasks(K.splat_supports, len(centres_view),
+                 [[*args, r0, r1, t_in, t_out] for r0, r1 in _row_bands(h, launch)])
+    return t_in, t_out
+
+
+def metaball_targets(positions: np.ndarray, radii, camera: Camera, params: MetaballParams, launch: Launcher,
+                     colours: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Ray-march the metaball surface f = iso of balls at world ``positions`` (N x 3) with ``radii``
+    (N, or one for all) and ``colours`` (N x 3, default ``params.colour``) for one view.
+
+    Returns ``depth`` (H x W view depth, 0 where empty), ``normals`` (H x W x 3 view-space unit
+    normals, -grad f, 0 where empty), ``colour`` (H x W x 3, the field-weighted blend of the ball
+    colours, 0 where empty) and ``mask`` (H x W, 1 on the surface). Only surfaces between
+    ``depth_near`` and ``depth_far`` are seen."""
+    p = params
+    device = launch.device
+    w, h = camera.width, camera.height
+    pos, rad, col = _balls(positions, radii, colours, p)
+    out = {"depth": np.zeros((h, w), np.float32), "normals": np.zeros((h, w, 3), np.float32),
+           "colour": np.zeros((h, w, 3), np.float32), "mask": np.zeros((h, w), np.float32)}
+    if len(pos) == 0:
+        return out
+    k = p.kernel_radius_radii
+    supports = k * rad if k > 0 else np.zeros(0)  # none: every ray is marched over the depth range
+    reach = float(supports.max()) if k > 0 else 0.0
+    t_entry, t_exit = _support_span(camera.to_view(pos), supports, camera, p, launch)
+    centres = wp.array(pos.astype(np.float32), dtype=wp.vec3, device=device)
+    grid = _hash_grid(centres, pos, reach, device) if k > 0 else None
+    arrays = {name: wp.zeros(w * h, dtype=dtype, device=device)
+              for name, dtype in (("depth", float), ("normals", wp.vec3), ("colour", wp.vec3), ("mask", float))}
+    rot = camera.cam_to_world[:3, :3].astype(np.float32)
+    balls = [grid.id if grid is not None else wp.uint64(0), centres,
+             wp.array(rad.astype(np.float32), dtype=float, device=device), wp.array(col, dtype=wp.vec3, device=device)]
+    view = [wp.vec3(*camera.eye.astype(np.float32)), wp.mat33(*rot.ravel()), w, h, camera.focal_px]
+    launch(K.march_metaballs, w * h, [*balls, float(k), reach, p.iso_level, *view, t_entry, t_exit, p.depth_near,
+                                      p.depth_far, p.step, p.bisections, *arrays.values()])
+    for name, a in arrays.items():
+        out[name] = a.numpy().reshape(out[name].shape)
+    return out
+
+
+def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballParams, launch: Launcher,
+                 colours: np.ndarray | None = None) -> np.ndarray:
+    """The thesis' network input for one view (4 x H x W float32: R, G, B and the depth code).
+
+    Each ball in front of the camera is a circle outline centred on its projection, of radius
+    focal x minimal radius / centre depth (its camera-facing quad's half side) and width
+    ``outline_width`` of the quad's side (at least ``outline_min_px``), drawn in its colour with
+    its centre's depth code (d - near) / (far - near), clamped to [0, 1]. Where outlines overlap
+    the ball with the nearest centre wins (the lower index on a tie); the background is 0."""
+    p = params
+    device = launch.device
+    w, h = camera.width, camera.height
+    pos, rad, col = _balls(positions, radii, colours, p)
+    n = len(pos)
+    if n == 0:
+        return np.zeros((4, h, w), np.float32)
+    view = camera.to_view(pos)
+    depth = -view[:, 2]
+    front = depth > 0
+    safe = np.where(front, depth, 1.0)
+    f = camera.focal_px
+    cx, cy = w / 2.0 + f * view[:, 0] / safe, h / 2.0 - f * view[:, 1] / safe
+    outer = np.where(front, f * minimal_radius(rad, p.iso_level) / safe, 0.0)
+    ring = np.maximum(2.0 * p.outline_width * outer, p.outline_min_px)
+    inner = np.maximum(outer - ring, 0.0)
+    circles = np.stack([cx, cy, outer, inner], axis=1)
+    code = np.clip((depth - p.depth_near) / (p.depth_far - p.depth_near), 0.0, 1.0)
+    depth_buf = wp.full(w * h, _EMPTY, dtype=float, device=device)
+    owner = wp.full(w * h, _NO_OWNER, dtype=int, device=device)
+    args = [wp.array(circles.astype(np.float32), dtype=wp.vec4, device=device),
+            wp.array(depth.astype(np.float32), dtype=float, device=device), w]
+    bands = _row_bands(h, launch)
+    for owner_pass in (0, 1):
+        launch.tasks(K.draw_outlines, n, [[*args, r0, r1, owner_pass, depth_buf, owner] for r0, r1 in bands])
+    image = wp.zeros(4 * w * h, dtype=float, device=device)
+    launch(K.finish_outlines, w * h, [owner, wp.array(col, dtype=wp.vec3, device=device),
+                                      wp.array(code.astype(np.float32), dtype=float, device=device), n, w * h, image])
+    return image.numpy().reshape(4, h, w)
+
+
+def encode_targets(targets: dict[str, np.ndarray], params: MetaballParams) -> np.ndarray:
+    """The thesis' 7 x H x W target buffers in [0, 1] (``TARGET_CHANNELS``): colour, the depth code
+    (d - near) / (far - near) (1 where empty, as its shader's miss depth clamps to white) and the
+    normal as (n + 1) / 2 (0 where empty). The network sees 2 x - 1 of these."""
+    p = params
+    mask = targets["mask"] > 0
+    code = np.clip((targets["depth"] - p.depth_near) / (p.depth_far - p.depth_near), 0.0, 1.0)
+    code = np.where(mask, code, 1.0)
+    normal = np.where(mask[..., None], 0.5 * (targets["normals"] + 1.0), 0.0)
+    colour = np.where(mask[..., None], targets["colour"], 0.0)
+    return np.concatenate([colour.transpose(2, 0, 1), code[None], normal.transpose(2, 0, 1)]).astype(np.float32)
+
+
+def decode_gbuffers(encoded: np.ndarray, params: MetaballParams, min_encoded_normal: float = 0.25) -> dict:
+    """``encode_targets``' inverse for 7 x H x W buffers in [0, 1] (a generator's tanh output y maps
+    to (y + 1) / 2 first): ``colour``, ``depth``, ``normals`` (renormalised) and ``mask``.
+
+    A pixel is surface where its encoded normal is longer than ``min_encoded_normal``: empty pixels
+    encode as 0, and a unit normal facing the camera (n_z >= 0) encodes longer than 0.54."""
+    p = params
+    e = np.asarray(encoded, np.float32)
+    enc_n = e[4:7].transpose(1, 2, 0)
+    mask = np.linalg.norm(enc_n, axis=-1) > min_encoded_normal
+    n = 2.0 * enc_n - 1.0
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    depth = p.depth_near + e[3] * (p.depth_far - p.depth_near)
+    return {"colour": np.where(mask[..., None], e[0:3].transpose(1, 2, 0), 0.0).astype(np.float32),
+            "depth": np.where(mask, depth, 0.0).astype(np.float32),
+            "normals": np.where(mask[..., None], n, 0.0).astype(np.float32), "mask": mask.astype(np.float32)}
+
+
+def view_channels(targets: dict[str, np.ndarray], circles: np.ndarray) -> dict[str, np.ndarray]:
+    """EXR channels of one view (for ``pipeline.exr.write_exr``): the circle input as ``circles.R``,
+    ``.G``, ``.B``, ``.Z`` (the depth code) and the targets as ``metaball.R``, ``.G``, ``.B``,
+    ``metaball.Z`` (view depth), ``metaball.N.X``, ``.Y``, ``.Z`` and ``metaball.A`` (mask)."""
+    out = {f"circles.{c}": circles[k] for k, c in enumerate(INPUT_CHANNELS)}
+    out.update({f"metaball.{c}": targets["colour"][..., k] for k, c in enumerate("RGB")})
+    out["metaball.Z"] = targets["depth"]
+    out.update({f"metaball.N.{c}": targets["normals"][..., k] for k, c in enumerate("XYZ")})
+    out["metaball.A"] = targets["mask"]
+    return out

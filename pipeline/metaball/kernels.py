@@ -1,0 +1,273 @@
+"""Warp kernels of the metaball system (Horvath, "Image-Space Metaballs Using Deep Learning",
+master's thesis, TU Wien 2019, sections 4.1 and 5.2).
+
+Field: f(X) = sum_i w_i(|X - P_i|) with w_i(d) = r_i^2 / d^2 (the thesis' equation 5.1), gradient
+2 r_i^2 (P_i - X) / |P_i - X|^4 (equation 5.2). With a kernel radius R_i = k r_i (k > 0) each term is
+multiplied by a smoothstep taper s(u) = 1 - u^2 (3 - 2u), u = (d - R_i / 2) / (R_i / 2), that is 1
+inside R_i / 2 and falls to 0 at R_i with zero slope: the sum stays C1 (a hard cut would put a step
+of r_i^2 / R_i^2 into the field, and spurious surfaces where it crosses the iso-level), and a hash
+grid bounds it. k = 0 keeps the thesis' infinite support: every ball at every sample.
+
+Targets: one ray per pixel, marched in view depth in steps between where it enters its first and
+leaves its last ball support (a splat of the support spheres), the first iso crossing refined by
+bisection; view depth, the view-space normal -grad f / |grad f|, and the colour
+sum c_i w_i / sum w_i at the crossing.
+
+Input (listing 5.1): per ball a camera-facing quad of half side the ball's projected minimal
+radius, in which only the ring 0.45 < |uv - 0.5| < 0.5 is drawn, with a depth test on the depth of
+the ball's centre (ties go to the lower index, as the first drawn wins under GL_LESS).
+
+Per-pixel kernels take ``offset`` first and address pixel ``tid + offset`` of a row-major H x W
+image; per-ball kernels draw into the rows [row0, row1) only, so row bands run on several threads.
+"""
+
+import warp as wp
+
+from pipeline.screen.kernels import pixel_ray, splat_bounds
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def ball_weight(v: wp.vec3, r: float, cutoff: float) -> wp.vec4:
+    """(w, grad w) of one ball at X, v = X - P: r^2 / d^2 tapered to 0 between cutoff / 2 and cutoff
+    (cutoff 0: no taper); grad w = (dw/dd) v / d."""
+    d2 = wp.max(wp.dot(v, v), 1.0e-12)
+    d = wp.sqrt(d2)
+    if cutoff > 0.0 and d >= cutoff:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    s = float(1.0)
+    ds = float(0.0)
+    half = 0.5 * cutoff
+    if cutoff > 0.0 and d > half:
+        u = (d - half) / half
+        s = 1.0 - u * u * (3.0 - 2.0 * u)
+        ds = -6.0 * u * (1.0 - u) / half
+    w = r * r / d2
+    # d/dd (w s) = w (s' - 2 s / d)
+    g = v * (w * (ds - 2.0 * s / d) / d)
+    return wp.vec4(w * s, g[0], g[1], g[2])
+
+
+@wp.func
+def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float), cutoff_radii: float,
+             reach: float, x: wp.vec3) -> wp.vec4:
+    """(f, grad f) at x: the balls within ``reach`` from the hash grid, or all of them when
+    ``cutoff_radii`` is 0 (infinite support)."""
+    total = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    if cutoff_radii > 0.0:
+        q = wp.hash_grid_query(grid, x, reach)
+        j = int(0)
+        while wp.hash_grid_query_next(q, j):
+            total += ball_weight(x - centres[j], radii[j], cutoff_radii * radii[j])
+    else:
+        for j in range(centres.shape[0]):
+            total += ball_weight(x - centres[j], radii[j], 0.0)
+    return total
+
+
+@wp.func
+def colour_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
+              colours: wp.array(dtype=wp.vec3), cutoff_radii: float, reach: float, x: wp.vec3) -> wp.vec3:
+    """Field-weighted blend sum c_i w_i / sum w_i of the ball colours at x."""
+    c = wp.vec3(0.0, 0.0, 0.0)
+    total = float(0.0)
+    if cutoff_radii > 0.0:
+        q = wp.hash_grid_query(grid, x, reach)
+        j = int(0)
+        while wp.hash_grid_query_next(q, j):
+            w = ball_weight(x - centres[j], radii[j], cutoff_radii * radii[j])[0]
+            c += colours[j] * w
+            total += w
+    else:
+        for j in range(centres.shape[0]):
+            w = ball_weight(x - centres[j], radii[j], 0.0)[0]
+            c += colours[j] * w
+            total += w
+    if total > 0.0:
+        c = c / total
+    return c
+
+
+@wp.kernel
+def splat_supports(
+    offset: int,
+    centres_view: wp.array(dtype=wp.vec3),
+    supports: wp.array(dtype=float),
+    focal: float,
+    width: int,
+    height: int,
+    row0: int,
+    row1: int,
+    t_in: wp.array(dtype=float),
+    t_out: wp.array(dtype=float),
+):
+    """View depths at which each pixel's ray enters its first and leaves its last support sphere
+    (radius ``supports``) of a ball: an exact ray-sphere splat into the rows [row0, row1), the min of
+    the entries and the max of the exits over the balls."""
+    i = wp.tid() + offset
+    c = centres_view[i]
+    rad = supports[i]
+    box = splat_bounds(c, rad, focal, width, height, row0, row1)
+    cc = wp.dot(c, c) - rad * rad
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            ray = pixel_ray(px, py, width, height, focal)
+            a = wp.dot(ray, ray)
+            b = wp.dot(ray, c)
+            disc = b * b - a * cc
+            if disc > 0.0:
+                sq = wp.sqrt(disc)
+                wp.atomic_min(t_in, py * width + px, (b - sq) / a)
+                wp.atomic_max(t_out, py * width + px, (b + sq) / a)
+
+
+@wp.kernel
+def march_metaballs(
+    offset: int,
+    grid: wp.uint64,
+    centres: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    colours: wp.array(dtype=wp.vec3),
+    cutoff_radii: float,
+    reach: float,
+    iso: float,
+    eye: wp.vec3,
+    cam_to_world: wp.mat33,
+    width: int,
+    height: int,
+    focal: float,
+    t_entry: wp.array(dtype=float),
+    t_exit: wp.array(dtype=float),
+    t_near: float,
+    t_far: float,
+    step: float,
+    bisections: int,
+    depth_out: wp.array(dtype=float),
+    normal_out: wp.array(dtype=wp.vec3),
+    colour_out: wp.array(dtype=wp.vec3),
+    mask_out: wp.array(dtype=float),
+):
+    """March each pixel's ray to its first crossing of f = iso; write view depth, view normal,
+    blended colour and mask (all 0 where the ray meets no surface).
+
+    The ray runs in view depth t from max(t_entry, t_near) to min(t_exit, t_far), where it enters
+    its first and leaves its last ball support, sampling every ``step``; a crossing between two samples is halved
+    ``bisections`` times and placed mid-interval. A ray that starts inside the surface (cut by the
+    near plane) hits at its start."""
+    idx = wp.tid() + offset
+    depth_out[idx] = 0.0
+    normal_out[idx] = wp.vec3(0.0, 0.0, 0.0)
+    colour_out[idx] = wp.vec3(0.0, 0.0, 0.0)
+    mask_out[idx] = 0.0
+    t = wp.max(t_entry[idx], t_near)
+    t_end = wp.min(t_exit[idx], t_far)
+    if t >= t_end:
+        return
+    row = idx // width
+    col = idx - row * width
+    d = cam_to_world * pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
+    t_hit = float(-1.0)
+    if field_at(grid, centres, radii, cutoff_radii, reach, eye + d * t)[0] >= iso:
+        t_hit = t
+    while t_hit < 0.0 and t < t_end:
+        t_next = wp.min(t + step, t_end)
+        if field_at(grid, centres, radii, cutoff_radii, reach, eye + d * t_next)[0] >= iso:
+            ta = t
+            tb = t_next
+            for _ in range(bisections):
+                tm = 0.5 * (ta + tb)
+                if field_at(grid, centres, radii, cutoff_radii, reach, eye + d * tm)[0] >= iso:
+                    tb = tm
+                else:
+                    ta = tm
+            t_hit = 0.5 * (ta + tb)
+        t = t_next
+    if t_hit < 0.0:
+        return
+    x = eye + d * t_hit
+    grad = field_at(grid, centres, radii, cutoff_radii, reach, x)
+    n = wp.transpose(cam_to_world) * wp.vec3(-grad[1], -grad[2], -grad[3])
+    ln = wp.length(n)
+    if ln > 0.0:
+        n = n / ln
+    depth_out[idx] = t_hit
+    normal_out[idx] = n
+    colour_out[idx] = colour_at(grid, centres, radii, colours, cutoff_radii, reach, x)
+    mask_out[idx] = 1.0
+
+
+@wp.func
+def on_outline(px: int, py: int, cx: float, cy: float, outer: float, inner: float) -> bool:
+    """Whether the centre of pixel (px, py) lies strictly inside the ring inner < rho < outer around
+    (cx, cy) (pixels)."""
+    dx = float(px) + 0.5 - cx
+    dy = float(py) + 0.5 - cy
+    rho = wp.sqrt(dx * dx + dy * dy)
+    return rho > inner and rho < outer
+
+
+@wp.func
+def outline_box(cx: float, cy: float, outer: float, width: int, row0: int, row1: int) -> wp.vec4i:
+    """Pixel box (x0, x1, y0, y1) of a ring of outer radius ``outer`` around (cx, cy), rows clipped to
+    [row0, row1); empty (x1 < x0) off the band."""
+    return wp.vec4i(wp.max(int(wp.floor(cx - outer)), 0), wp.min(int(wp.ceil(cx + outer)), width - 1),
+                    wp.max(int(wp.floor(cy - outer)), row0), wp.min(int(wp.ceil(cy + outer)), row1 - 1))
+
+
+@wp.kernel
+def draw_outlines(
+    offset: int,
+    circles: wp.array(dtype=wp.vec4),
+    centre_depth: wp.array(dtype=float),
+    width: int,
+    row0: int,
+    row1: int,
+    owner_pass: int,
+    depth: wp.array(dtype=float),
+    owner: wp.array(dtype=int),
+):
+    """Rasterise each ball's ring (``circles``: centre column, centre row, outer and inner radius in
+    pixels) into the rows [row0, row1) with a depth test on the centre's view depth.
+
+    Pass 0 keeps the nearest depth per pixel; pass 1 marks the lowest index among the balls at that
+    depth as the pixel's owner (ties resolved as the first drawn wins)."""
+    i = wp.tid() + offset
+    c = circles[i]
+    z = centre_depth[i]
+    if c[2] <= 0.0:
+        return
+    box = outline_box(c[0], c[1], c[2], width, row0, row1)
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            if on_outline(px, py, c[0], c[1], c[2], c[3]):
+                idx = py * width + px
+                if owner_pass == 0:
+                    wp.atomic_min(depth, idx, z)
+                elif depth[idx] == z:
+                    wp.atomic_min(owner, idx, i)
+
+
+@wp.kernel
+def finish_outlines(
+    offset: int,
+    owner: wp.array(dtype=int),
+    colours: wp.array(dtype=wp.vec3),
+    depth_code: wp.array(dtype=float),
+    count: int,
+    plane: int,
+    image: wp.array(dtype=float),
+):
+    """Write the owner's colour and centre depth code into the 4 x H x W image (planes ``plane``
+    apart); pixels without an owner stay 0 (the cleared background)."""
+    idx = wp.tid() + offset
+    k = owner[idx]
+    if k >= count:
+        for ch in range(4):
+            image[ch * plane + idx] = 0.0
+        return
+    c = colours[k]
+    image[idx] = c[0]
+    image[plane + idx] = c[1]
+    image[2 * plane + idx] = c[2]
+    image[3 * plane + idx] = depth_code[k]
