@@ -58,7 +58,7 @@ train-ddp: setup
 
 bench: setup
 	$(PY) -m pip install -q -e '.[dev,bench]'
-	$(PY) benchmarks/bench_sim.py
+	$(PY) benchmarks/bench_sim.py --peers
 	$(PY) benchmarks/bench_dataset.py
 	$(PY) benchmarks/bench_train.py
 	$(PY) benchmarks/bench_render.py --demo
