@@ -23,7 +23,7 @@ image; per-ball kernels draw into the rows [row0, row1) only, so row bands run o
 
 import warp as wp
 
-from pipeline.screen.kernels import pixel_ray, splat_bounds
+from pipeline.screen.kernels import pixel_ray, ray_sphere, splat_bounds
 
 wp.set_module_options({"enable_backward": False})
 
@@ -112,14 +112,10 @@ def splat_supports(
     cc = wp.dot(c, c) - rad * rad
     for py in range(box[2], box[3] + 1):
         for px in range(box[0], box[1] + 1):
-            ray = pixel_ray(px, py, width, height, focal)
-            a = wp.dot(ray, ray)
-            b = wp.dot(ray, c)
-            disc = b * b - a * cc
-            if disc > 0.0:
-                sq = wp.sqrt(disc)
-                wp.atomic_min(t_in, py * width + px, (b - sq) / a)
-                wp.atomic_max(t_out, py * width + px, (b + sq) / a)
+            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, cc)
+            if hit[2] >= 0.0:
+                wp.atomic_min(t_in, py * width + px, hit[0])
+                wp.atomic_max(t_out, py * width + px, hit[1])
 
 
 @wp.kernel

@@ -33,6 +33,19 @@ def ray_ellipsoid(ray: wp.vec3, c: wp.vec3, m: wp.mat33) -> wp.vec2:
 
 
 @wp.func
+def ray_sphere(ray: wp.vec3, c: wp.vec3, cc: float) -> wp.vec3:
+    """(entry t, exit t, chord length) of the ray t * ray against a sphere centred at c, with
+    cc = |c|^2 - radius^2; the chord is -1 on a miss."""
+    a = wp.dot(ray, ray)
+    b = wp.dot(ray, c)
+    disc = b * b - a * cc
+    if disc <= 0.0:
+        return wp.vec3(0.0, 0.0, -1.0)
+    sq = wp.sqrt(disc)
+    return wp.vec3((b - sq) / a, (b + sq) / a, 2.0 * sq / wp.sqrt(a))
+
+
+@wp.func
 def pixel_ray(px: int, py: int, width: int, height: int, focal: float) -> wp.vec3:
     """View-space ray through a pixel centre, scaled so that its z is -1 (t is the view depth)."""
     return wp.vec3((float(px) + 0.5 - float(width) * 0.5) / focal, -(float(py) + 0.5 - float(height) * 0.5) / focal,
@@ -75,16 +88,11 @@ def splat_spheres(
     cc = wp.dot(c, c) - radius * radius
     for py in range(box[2], box[3] + 1):
         for px in range(box[0], box[1] + 1):
-            ray = pixel_ray(px, py, width, height, focal)
-            a = wp.dot(ray, ray)
-            b = wp.dot(ray, c)
-            disc = b * b - a * cc
-            if disc > 0.0:
-                sq = wp.sqrt(disc)
-                t0 = (b - sq) / a
+            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, cc)
+            if hit[2] >= 0.0:
                 idx = py * width + px
-                wp.atomic_min(depth, idx, t0)
-                wp.atomic_add(thickness, idx, 2.0 * sq / wp.sqrt(a))
+                wp.atomic_min(depth, idx, hit[0])
+                wp.atomic_add(thickness, idx, hit[2])
 
 
 @wp.kernel
