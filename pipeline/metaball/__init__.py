@@ -20,13 +20,11 @@ import warp as wp
 from pipeline.camera import Camera
 from pipeline.metaball import kernels as K
 from pipeline.parallel import Launcher
+from pipeline.screen import row_bands
+from pipeline.surface import hash_grid
 
 _EMPTY = 1.0e30
 _NO_OWNER = 2**31 - 1
-
-# Row bands of the per-ball kernels per thread: threads take bands as they come free, so balls
-# crowded into a few rows still spread over the cores (as in ``pipeline.screen``).
-BANDS_PER_THREAD = 4
 
 PAPER_FOV_Y_DEG = 60.0
 """Vertical field of view of the thesis' targets. Its shader's 'FOV 30' is used as tan(30 deg) at the
@@ -106,23 +104,6 @@ def _balls(positions: np.ndarray, radii, colours: np.ndarray | None,
     return pos, rad, np.ascontiguousarray(col, np.float32)
 
 
-def _row_bands(height: int, launch: Launcher) -> list[tuple[int, int]]:
-    """Row bands for the per-ball kernels: one on CUDA or a single thread, several per thread else."""
-    parallel = launch.cpu and launch.threads > 1
-    count = max(1, min(height, BANDS_PER_THREAD * launch.threads)) if parallel else 1
-    bounds = [height * k // count for k in range(count + 1)]
-    return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
-
-
-def _hash_grid(points: wp.array, host_points: np.ndarray, cell: float, device: str) -> wp.HashGrid:
-    """A Warp hash grid over ``points`` with cells of ``cell``, sized to their bounding box."""
-    extent = host_points.max(0) - host_points.min(0)
-    dims = [int(min(128, max(1, math.ceil(e / cell) + 1))) for e in extent]
-    grid = wp.HashGrid(*dims, device=device)
-    grid.build(points, cell)
-    return grid
-
-
 def _support_span(centres_view: np.ndarray, supports: np.ndarray, camera: Camera, p: MetaballParams,
                   launch: Launcher) -> tuple[wp.array, wp.array]:
     """Per pixel the view depths where its ray enters its first and leaves its last ball support
@@ -138,7 +119,7 @@ def _support_span(centres_view: np.ndarray, supports: np.ndarray, camera: Camera
     args = [wp.array(centres_view.astype(np.float32), dtype=wp.vec3, device=device),
             wp.array(supports.astype(np.float32), dtype=float, device=device), camera.focal_px, w, h]
     launch.tasks(K.splat_supports, len(centres_view),
-                 [[*args, r0, r1, t_in, t_out] for r0, r1 in _row_bands(h, launch)])
+                 [[*args, r0, r1, t_in, t_out] for r0, r1 in row_bands(launch, h)])
     return t_in, t_out
 
 
@@ -164,7 +145,7 @@ def metaball_targets(positions: np.ndarray, radii, camera: Camera, params: Metab
     reach = float(supports.max()) if k > 0 else 0.0
     t_entry, t_exit = _support_span(camera.to_view(pos), supports, camera, p, launch)
     centres = wp.array(pos.astype(np.float32), dtype=wp.vec3, device=device)
-    grid = _hash_grid(centres, pos, reach, device) if k > 0 else None
+    grid = hash_grid(centres, pos, reach, device) if k > 0 else None
     arrays = {name: wp.zeros(w * h, dtype=dtype, device=device)
               for name, dtype in (("depth", float), ("normals", wp.vec3), ("colour", wp.vec3), ("mask", float))}
     rot = camera.cam_to_world[:3, :3].astype(np.float32)
@@ -209,7 +190,7 @@ def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
     owner = wp.full(w * h, _NO_OWNER, dtype=int, device=device)
     args = [wp.array(circles.astype(np.float32), dtype=wp.vec4, device=device),
             wp.array(depth.astype(np.float32), dtype=float, device=device), w]
-    bands = _row_bands(h, launch)
+    bands = row_bands(launch, h)
     for owner_pass in (0, 1):
         launch.tasks(K.draw_outlines, n, [[*args, r0, r1, owner_pass, depth_buf, owner] for r0, r1 in bands])
     image = wp.zeros(4 * w * h, dtype=float, device=device)

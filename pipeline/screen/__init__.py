@@ -38,6 +38,15 @@ class SplatResult:
     normals: np.ndarray | None = None
 
 
+def row_bands(launch: Launcher, height: int) -> list[tuple[int, int]]:
+    """Row bands for the per-particle splat kernels: one on CUDA or a single thread, else
+    ``SPLAT_BANDS_PER_THREAD`` per thread, so bands own their rows and run without races."""
+    parallel = launch.cpu and launch.threads > 1
+    count = max(1, min(height, SPLAT_BANDS_PER_THREAD * launch.threads)) if parallel else 1
+    bounds = [height * k // count for k in range(count + 1)]
+    return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
+
+
 class ScreenSpace:
     """Runs the screen-space kernels for one device (holds the thread pool and the frame buffers).
 
@@ -85,7 +94,7 @@ class ScreenSpace:
         if n:
             centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
                                dtype=wp.vec3, device=self.device)
-            bands = self._row_bands(h)
+            bands = row_bands(self.launch, h)
             self.launch.tasks(K.splat_spheres, n, [[centers, radius, camera.focal_px, w, h, r0, r1, depth, thickness]
                                                    for r0, r1 in bands])
         self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
@@ -106,18 +115,12 @@ class ScreenSpace:
                     wp.array(shapes, dtype=wp.mat33, device=self.device),
                     wp.array(np.asarray(ellipsoids.bounds, np.float32), dtype=float, device=self.device),
                     camera.focal_px, w, h]
-            bands = self._row_bands(h)
+            bands = row_bands(self.launch, h)
             for normals_pass in (0, 1) if with_normals else (0,):
                 self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals]
                                                           for r0, r1 in bands])
         self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
         return depth, mask, thickness, normals
-
-    def _row_bands(self, height: int) -> list[tuple[int, int]]:
-        parallel = self.launch.cpu and self.launch.threads > 1
-        count = max(1, min(height, SPLAT_BANDS_PER_THREAD * self.launch.threads)) if parallel else 1
-        bounds = [height * k // count for k in range(count + 1)]
-        return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
 
     def _gaussian(self, depth: wp.array, w: int, h: int, sigma_px: float) -> wp.array:
         a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
@@ -231,7 +234,7 @@ class ScreenSpace:
                                dtype=wp.vec3, device=self.device)
             motion = wp.array(np.ascontiguousarray(particle_motion, np.float32), dtype=wp.vec4, device=self.device)
             self.launch.tasks(K.splat_motion, n, [[centers, motion, radius, camera.focal_px, w, h, r0, r1, reference,
-                                                   band, total, weight] for r0, r1 in self._row_bands(h)])
+                                                   band, total, weight] for r0, r1 in row_bands(self.launch, h)])
         out = self._buffer("motion", w * h, wp.vec4)
         self.launch(K.finish_motion, w * h, [total, weight, out])
         return self._download(out, (h, w, 4)), self._download(weight, (h, w)) > 0

@@ -511,13 +511,10 @@ def splat_motion(
     m = motion[i]
     for py in range(box[2], box[3] + 1):
         for px in range(box[0], box[1] + 1):
-            ray = pixel_ray(px, py, width, height, focal)
-            a = wp.dot(ray, ray)
-            b = wp.dot(ray, c)
-            disc = b * b - a * cc
-            if disc > 0.0:
+            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, cc)
+            if hit[2] >= 0.0:
                 idx = py * width + px
-                if (b - wp.sqrt(disc)) / a <= depth[idx] + band:
+                if hit[0] <= depth[idx] + band:
                     wp.atomic_add(motion_sum, idx, m)
                     wp.atomic_add(weight, idx, 1.0)
 

@@ -63,7 +63,7 @@ def full_neighbourhood_variance(step: float, support: float) -> float:
 ANISOTROPY_CELLS_PER_SUPPORT = 2
 
 
-def _hash_grid(points: wp.array, host_points: np.ndarray, cell: float, device: str) -> wp.HashGrid:
+def hash_grid(points: wp.array, host_points: np.ndarray, cell: float, device: str) -> wp.HashGrid:
     """A Warp hash grid over ``points`` with cells of ``cell``, sized to their bounding box."""
     extent = host_points.max(0) - host_points.min(0)
     dims = [int(min(128, max(1, math.ceil(e / cell) + 1))) for e in extent]
@@ -86,7 +86,7 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     h = p.aniso_kernel_radius * radius
     support = 2.0 * h
     x = wp.array(positions.astype(np.float32), dtype=wp.vec3, device=device)
-    grid = _hash_grid(x, positions, support / ANISOTROPY_CELLS_PER_SUPPORT, device)
+    grid = hash_grid(x, positions, support / ANISOTROPY_CELLS_PER_SUPPORT, device)
     ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(spacing(radius), support)
     centres = wp.zeros(n, dtype=wp.vec3, device=device)
     g = wp.zeros(n, dtype=wp.mat33, device=device)
@@ -184,7 +184,7 @@ def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, ve
                     launch: Launcher, device: str) -> np.ndarray:
     """Outward unit normals of the anisotropic density at the given points (analytic gradient)."""
     reach = float(extents.numpy().max())
-    grid = _hash_grid(centres, centres.numpy(), reach, device)
+    grid = hash_grid(centres, centres.numpy(), reach, device)
     out = wp.zeros(len(vertices), dtype=wp.vec3, device=device)
     launch(K.density_gradient_normals, len(vertices), [grid.id, centres, kernel_g, reach,
                                                        wp.array(vertices, dtype=wp.vec3, device=device), out])
@@ -263,7 +263,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     supports = Ellipsoids(c, (np.eye(3, dtype=np.float32)[None] / e[:, None, None]).astype(np.float32), e)
     t_start = ss.splat_ellipsoids(supports, camera, normals=False).depth
     reach = float(e.max())
-    grid = _hash_grid(centres, c, reach, device)
+    grid = hash_grid(centres, c, reach, device)
     amplitude = particle_volume(radius) * POLY6_NORM
     out_n = wp.zeros(w * h, dtype=wp.vec3, device=device)
     out_d = wp.zeros(w * h, dtype=float, device=device)
