@@ -368,8 +368,6 @@ def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str]
 def publish(source: Path, target: Path) -> None:
     """Make a finished cache file appear at ``target`` (a user's output folder): a hard link when
     both are on one file system, else a copy; atomic either way."""
-    import shutil
-
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}")
