@@ -151,6 +151,33 @@ def framing_cameras(lo, hi, width: int, height: int, count: int, orbit: bool = F
     return [camera(az, distance) for az in azimuths]
 
 
+def random_view(positions: np.ndarray, radius: float, rng: np.random.Generator, radius_px: tuple[float, float],
+                size: tuple[int, int], fov_deg: tuple[float, float], elevation_deg: tuple[float, float],
+                tries: int = 32) -> Camera:
+    """A random camera for training views: it looks at a random particle from a random azimuth and
+    elevation with a random field of view and a square image side in ``size`` (a multiple of 32),
+    from the distance at which that particle's radius projects to a log-uniform draw from
+    ``radius_px`` pixels. Side and projected radius are drawn together so that the frame, scaled to
+    3 px per radius, keeps at least about 128 px (``pipeline.model.scale``). Eyes closer than four
+    radii to a particle (inside the fluid) are drawn again, up to ``tries`` times."""
+    pts = np.asarray(positions, np.float64)
+    cam = None
+    for _ in range(tries):
+        r_px = float(np.exp(rng.uniform(np.log(radius_px[0]), np.log(radius_px[1]))))
+        lo = max(size[0], min(size[1], int(np.ceil(43.0 * r_px))))
+        side = int(round(rng.uniform(lo, size[1]) / 32.0)) * 32
+        fov = float(rng.uniform(*fov_deg))
+        focal = 0.5 * side / math.tan(math.radians(fov) / 2.0)
+        distance = focal * radius / r_px
+        target = pts[int(rng.integers(len(pts)))] if len(pts) else np.zeros(3)
+        az, el = rng.uniform(0.0, 2.0 * math.pi), math.radians(float(rng.uniform(*elevation_deg)))
+        eye = target + distance * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+        cam = Camera(look_at(eye, target), fov, side, side)
+        if not len(pts) or float(np.min(np.sum((pts - eye) ** 2, axis=1))) > (4.0 * radius) ** 2:
+            return cam
+    return cam
+
+
 def _to_y_up(up: str) -> np.ndarray:
     """4x4 rotation from a world with ``up`` ('y' or 'z') to the pipeline's Y-up world."""
     out = np.eye(4)

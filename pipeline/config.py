@@ -240,12 +240,15 @@ class DatasetConfig:
     nrf_max_taps: int = Field(16, ge=1)
     """'fast' mode: most taps on each side of a narrow-range pass; wider kernels sample every k-th
     pixel (the 2D clean-up pass removes the pixel-scale noise this leaves)."""
-    bilateral_sigma_px_scale: float = Field(2.0, gt=0.0)
-    """Bilateral spatial sigma as a multiple of the projected particle radius (px / px)."""
-    bilateral_range_radii: float = Field(6.0, gt=0.0)
+    bilateral_sigma_px_scale: float = Field(1.5, gt=0.0)
+    """Bilateral spatial sigma as a multiple of the projected particle radius (px / px). 1.5 with a
+    range of 10 radii had the lowest error against the mesh over sphere and ellipsoid splats of
+    three training scenes at 256 and 512 px (``benchmarks/tune_bilateral.py``; 2 / 6 before)."""
+    bilateral_range_radii: float = Field(10.0, gt=0.0)
     """Bilateral range sigma in particle radii (depth units / r)."""
-    bilateral_max_radius_px: int = Field(24, ge=1)
-    """Cap on the bilateral kernel radius (px)."""
+    bilateral_max_radius_px: int = Field(100, ge=1)
+    """Cap on the bilateral kernel radius (px; the separable passes cost linear in it, and a cap
+    below twice the spatial sigma would make the filter depend on the resolution)."""
     gaussian_sigma_px: float = Field(3.0, gt=0.0)
     """Sigma of the naive fixed-size Gaussian depth blur, the weakest baseline (px)."""
     nrf_delta_radii: float = Field(10.5, gt=0.0)
@@ -296,6 +299,21 @@ class DatasetConfig:
     """Scenes kept entirely out of training (their frames are all validation)."""
     workers: int = Field(0, ge=0)
     """Parallel frame workers (0: one per core)."""
+    random_views: int = Field(0, ge=0)
+    """Extra training views per frame from random cameras (``pipeline.camera.random_view``), written
+    under ``random/``: the ellipsoid splat's inputs and the target at a random size, distance,
+    elevation and field of view, so the refiner sees the particle sizes, distances and
+    resolutions users bring (0: only the scene's two camera paths)."""
+    random_radius_px: tuple[float, float] = (1.0, 12.0)
+    """Random views: range of the projected particle radius at the view's centre (px, log-uniform)."""
+    random_size: tuple[int, int] = (256, 1024)
+    """Random views: range of the square image side (px)."""
+    random_fov_deg: tuple[float, float] = (25.0, 65.0)
+    """Random views: range of the vertical field of view (degrees)."""
+    random_elevation_deg: tuple[float, float] = (0.0, 75.0)
+    """Random views: range of the camera's elevation above the look-at particle (degrees)."""
+    view_seed: int = 0
+    """Seed of the random views (with the scene name, frame and view number)."""
 
 
 @dataclass(frozen=True, config=_RULES)
@@ -326,6 +344,30 @@ class TrainConfig:
     """Content loss norm (the paper prefers L1)."""
     auxiliary_features: bool = True
     """Feed raw and blurred depth with the normal (5 input channels) or the normal alone (3)."""
+    input_features: Literal["radius", "frame"] = "radius"
+    """How the depth features are made scale-free (``pipeline.model.data``): 'radius' expresses depth
+    differences in particle radii (raw minus filtered depth, and the filtered depth's relief against
+    its neighbourhood) and adds the projected radius in pixels, so a fluid seen from further away or
+    at another resolution gives the same inputs; 'frame' normalises raw and filtered depth by the
+    frame's mean and spread (the weights shipped before 2026-12)."""
+    working_radius_px: float = Field(3.0, ge=0.0)
+    """Frames whose median projected particle radius is larger than this are scaled down to it
+    before the generator (inputs area-averaged) and its output scaled back up, so the network always
+    sees particles of about this size (px; 0: never rescale). Recorded in the checkpoint."""
+    residual: bool = True
+    """The generator adds its output to the input normal (it learns a correction of the filtered
+    normals) instead of producing the normal from scratch."""
+    rotations: bool = True
+    """Augment crops by quarter turns (a camera roll), turning the view-space normals with the image,
+    besides left-right flips."""
+    init_from: str = ""
+    """Start the generator from these weights instead of random ones: 'shipped' (the package's
+    weights) or a checkpoint path; the architecture must match ('': random initialisation).
+    Fine-tunes the shipped refiner on a dataset of your own."""
+    time_limit_minutes: float = Field(0.0, ge=0.0)
+    """Stop after the epoch that passes this much training time, with ``last.pt`` written, so a long
+    training runs as resumable chunks (a GPU machine lent for minutes at a time; 0: no limit). The
+    stage then reports the epochs done and the next run resumes."""
     input_splat: Literal["sphere", "ellipsoid"] = "ellipsoid"
     """Which splat the generator's input is made of: the particles' anisotropic ellipsoids (the
     dataset's ``aniso_bilateral`` and ``aniso`` channels) or spheres (``bilateral`` and ``Z``).
@@ -333,6 +375,10 @@ class TrainConfig:
     against 10.99 for spheres (configs/ablations/*_input.yaml)."""
     train_scenes: tuple[str, ...] = ()
     """Scenes to train on (empty: every configured scene not held out)."""
+    validation_scenes: tuple[str, ...] = ()
+    """Held-out scenes whose frames choose the best checkpoint each epoch (empty: every held-out
+    scene's); ``evaluate`` leaves them out of its report, so the reported scenes never steered the
+    training."""
     gen_base_channels: int = Field(24, ge=4)
     """Generator channels at full resolution."""
     gen_downsamples: int = Field(2, ge=0, le=5)
@@ -448,6 +494,9 @@ class EvaluateConfig:
     """Frames evaluated per held-out sequence, evenly spread over it (0: all)."""
     imported_scenes: tuple[str, ...] = ()
     """Imported particle scenes also evaluated."""
+    sizes: tuple[int, ...] = ()
+    """Square image sides (px) to evaluate at, each from its own dataset views (empty: the
+    dataset's width and height); the report has a table per size."""
 
 
 @dataclass(frozen=True, config=_RULES)

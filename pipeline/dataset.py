@@ -1,9 +1,12 @@
 """The refiner's dataset: screen-space inputs and reference targets of every frame and camera path.
 
 Into one folder: ``<camera>/frame_0001.exr`` per camera path (channels in ``pipeline.views``) and,
-with ``dataset.keep_meshes``, ``meshes/frame_0001.ply``. A frame's anisotropic kernels and mesh are
-built once and seen from both cameras; frames run in parallel threads on the CPU. The manifest
-records say each file's camera, frame, split and share of fluid pixels.
+with ``dataset.keep_meshes``, ``meshes/frame_0001.ply``. With ``dataset.random_views`` each frame is
+also seen from that many random cameras (``random/frame_0001_v0.exr``...: training views of the
+ellipsoid splat at random sizes, distances and particle sizes on screen). A frame's anisotropic
+kernels and mesh are built once and seen from every camera; frames run in parallel threads on the
+CPU. Every view's header holds its camera and ``particleRadius``. The manifest records say each
+file's camera, frame, split and share of fluid pixels.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import functools
 import logging
 import os
 import threading
+import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -20,10 +24,10 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.cache import atomic_path
-from pipeline.camera import camera_for_frame
+from pipeline.camera import Camera, camera_for_frame, random_view
 from pipeline.config import DatasetConfig, SceneConfig
 from pipeline.executor import cluster_cpus, run_tasks, shards
-from pipeline.exr import read_exr, write_exr
+from pipeline.exr import camera_attributes, read_exr, write_exr
 from pipeline.frames import frame_name
 from pipeline.parallel import Launcher, init_warp
 from pipeline.screen import ScreenSpace
@@ -35,6 +39,26 @@ from pipeline.views import raytraced_target_channels, screen_space_inputs, targe
 
 log = logging.getLogger("deep_ssfr")
 CAMERAS = ("static", "orbit")
+RANDOM = "random"
+"""Folder of the random training views."""
+
+
+def random_view_name(frame: int, view: int) -> str:
+    """``random/frame_0001_v0.exr``: random view ``view`` of ``frame``."""
+    return f"{RANDOM}/{frame_name(frame, 'exr')[:-4]}_v{view}.exr"
+
+
+def view_attributes(camera: Camera, radius: float) -> dict:
+    """Header of a dataset view: the camera (standard attributes) and the particle radius, from which
+    the refiner's inputs express depths in radii and sizes in projected radii."""
+    return {**camera_attributes(camera), "particleRadius": float(radius)}
+
+
+def random_cameras(scene: str, frame: int, x: np.ndarray, radius: float, p: DatasetConfig) -> list[Camera]:
+    """The random cameras of one frame, seeded by ``view_seed``, the scene name, frame and view."""
+    return [random_view(x, radius, np.random.default_rng([p.view_seed, zlib.crc32(scene.encode()), frame, k]),
+                        p.random_radius_px, p.random_size, p.random_fov_deg, p.random_elevation_deg)
+            for k in range(p.random_views)]
 
 
 class _Worker(threading.local):
@@ -69,7 +93,8 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
 
     def build(index: int, frame: int) -> None:
         targets = {c: folder / c / frame_name(frame, "exr") for c in CAMERAS}
-        if all(t.exists() for t in targets.values()):
+        randoms = [folder / random_view_name(frame, k) for k in range(p.random_views)]
+        if all(t.exists() for t in [*targets.values(), *randoms]):
             return
         t = Timings()
         x = load(frame)
@@ -83,15 +108,23 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
         if p.keep_meshes:
             with atomic_path(folder / "meshes" / frame_name(frame, "ply")) as tmp:
                 mesh.to_trimesh().export(str(tmp), file_type="ply")
-        for cam_path, target in targets.items():
-            cam = camera_for_frame(scene.cameras, cam_path, index, len(frames), p.width, p.height)
-            channels = screen_space_inputs(x, radius, cam, p, local.ss, t, ellipsoids=ellipsoids)
+        views = [(camera_for_frame(scene.cameras, c, index, len(frames), p.width, p.height), path, True)
+                 for c, path in targets.items()]
+        views += [(cam, path, False) for cam, path in zip(random_cameras(scene.name, frame, x, radius, p), randoms,
+                                                          strict=True)]
+        for cam, target, every_filter in views:
+            if target.exists():
+                continue
+            # random views are for training: the ellipsoid splat and its bilateral filter only
+            channels = screen_space_inputs(x, radius, cam, p, local.ss, t, ellipsoids=ellipsoids,
+                                           **({} if every_filter else {"filters": None,
+                                                                       "aniso_filters": ("bilateral",)}))
             if p.target == "raytrace":
                 channels.update(raytraced_target_channels(kernels, radius, p, cam, local.ss, local.launch, device, t))
             else:
                 channels.update(target_channels(mesh, cam, local.launch, device, t))
             with t("write"):
-                write_exr(target, channels)
+                write_exr(target, channels, attributes=view_attributes(cam, radius))
         with lock:
             timings.merge(t)
 
@@ -106,9 +139,10 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
     return timings
 
 
-def manifest_records(folder: Path, frames: list[int], validation_camera: str) -> list[dict]:
-    """One record per written view: file, camera path, frame, index on the path, split ('val' for
-    the validation camera path) and share of fluid pixels. Whole held-out scenes are applied by
+def manifest_records(folder: Path, frames: list[int], validation_camera: str, random_views: int = 0) -> list[dict]:
+    """One record per written view: file, camera path ('random' for the random views), frame, index on
+    the path, split ('val' for the validation camera path, 'train' for random views) and share of
+    fluid pixels. Whole held-out scenes are applied by
     the consumers, so changing them does not invalidate a dataset."""
     records = []
     for cam_path in CAMERAS:
@@ -117,5 +151,11 @@ def manifest_records(folder: Path, frames: list[int], validation_camera: str) ->
             mask = read_exr(Path(folder) / name, ["A"])["A"]
             records.append({"file": name, "camera": cam_path, "frame": frame, "index": i,
                             "split": "val" if cam_path == validation_camera else "train",
+                            "fluid_share": round(float(mask.mean()), 5)})
+    for k in range(random_views):
+        for i, frame in enumerate(frames):
+            name = random_view_name(frame, k)
+            mask = read_exr(Path(folder) / name, ["aniso.A"])["aniso.A"]
+            records.append({"file": name, "camera": RANDOM, "frame": frame, "index": i, "view": k, "split": "train",
                             "fluid_share": round(float(mask.mean()), 5)})
     return records

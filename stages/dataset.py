@@ -6,12 +6,13 @@ listing each file with its split and fluid share.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
 
 from pipeline import cache
-from pipeline.config import SceneConfig, to_dict
+from pipeline.config import DatasetConfig, SceneConfig, to_dict
 from pipeline.dataset import build_dataset, manifest_records
 from pipeline.device import warp_device
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
@@ -21,9 +22,17 @@ from stages.common import Run
 log = logging.getLogger("deep_ssfr")
 
 
+def scene_params(run: Run, scene: SceneConfig) -> DatasetConfig:
+    """The dataset parameters of a scene: random training views only for scenes that train or
+    validate (a held-out scene that is only evaluated gets its two camera paths)."""
+    p, t = run.config.dataset, run.config.train
+    evaluated_only = scene.name in p.holdout_scenes and scene.name not in t.validation_scenes
+    return dataclasses.replace(p, random_views=0) if evaluated_only or scene.source else p
+
+
 def dataset_entry(run: Run, scene: SceneConfig, sim_key: str) -> cache.CacheEntry:
     """Cache entry keyed on the dataset config, the scene's cameras and the simulation."""
-    params = to_dict(run.config.dataset)
+    params = to_dict(scene_params(run, scene))
     for key in ("holdout_scenes", "workers"):  # these change no file of the entry
         params.pop(key)
     config = {"dataset": params, "cameras": to_dict(scene.cameras)}
@@ -37,14 +46,14 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     if not entry.begin(force=force):
         log.info("dataset %s: cached (%s)", scene.name, entry.dir)
         return entry
-    p = run.config.dataset
+    p = scene_params(run, scene)
     info = read_sequence_info(sim.dir)
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)
     start = time.perf_counter()
     sim_dir = sim.dir  # the tasks carry a path, not the entry
     timings = build_dataset(entry.dir, scene, p, frames, lambda f: load_frame(sim_dir / frame_name(f))[0],
                             info.particle_radius, warp_device(run.device), run.config.executor, run.config.ray_address)
-    records = manifest_records(entry.dir, frames, p.validation_camera)
+    records = manifest_records(entry.dir, frames, p.validation_camera, p.random_views)
     wall = time.perf_counter() - start
     entry.finish([r["file"] for r in records], timings.as_dict(), frames=records,
                  particle_radius=info.particle_radius, width=p.width, height=p.height, wall_seconds=round(wall, 2))
