@@ -31,7 +31,7 @@ from pipeline.screen import ScreenSpace
 from pipeline.surface import reconstruct
 from pipeline.views import screen_space_inputs, target_channels
 from stages import evaluate
-from stages.common import make_run, parse_args
+from stages.common import StageOptions, make_run
 
 ROOT = Path(__file__).resolve().parents[1]
 MODES = ("exact", "fast")
@@ -45,7 +45,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=4, help="frames per held-out sequence")
     args = parser.parse_args()
     wp.config.quiet = True
-    run = make_run(parse_args("evaluate", ["--config", args.config]))
+    run = make_run(StageOptions(config=args.config))
     base = run.config.dataset
     refiner = load_refiner(SHIPPED_WEIGHTS)
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
@@ -73,7 +73,7 @@ def main() -> None:
                         ss.bilateral(ch["Z"], cam, r, p) if m == "bilateral" else ss.narrow_range(ch["Z"], cam, r, p)
                         times[(size, m, mode)].append(time.perf_counter() - start)
                         errors[(size, m, mode)].append(angular_errors(stack(ch, f"{m}.N."), target, fluid & t_mask))
-                    n, mask = refine(refiner, ch, run.config.render.normal_threshold)
+                    n, mask = refine(refiner, ch, run.config.render.normal_threshold, cam.focal_px, r)
                     errors[(size, "refined", mode)].append(angular_errors(n, target, mask & t_mask))
                     if mode == "fast" and fluid.any():
                         radii[size].append(float(np.median(cam.focal_px * r / ch["Z"][fluid])))

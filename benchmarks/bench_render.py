@@ -34,7 +34,7 @@ from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
 
 from pipeline.config import DatasetConfig, RenderConfig  # noqa: E402
 from pipeline.methods import normal_source, shade_frame  # noqa: E402
-from pipeline.model.data import make_input  # noqa: E402
+from pipeline.model.data import InputSpec, prepare  # noqa: E402
 from pipeline.model.inference import SHIPPED_WEIGHTS, Refiner  # noqa: E402
 from pipeline.model.trainer import load_generator, predict  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
@@ -90,7 +90,7 @@ def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpac
     ellipsoids = particle_ellipsoids(x, r, p, launch) if refiner.splat == "ellipsoid" else None
     channels = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",), ellipsoids=ellipsoids,
                                    aniso_filters=("bilateral",))
-    inputs = make_input(channels, refiner.auxiliary, refiner.splat)
+    inputs = prepare(channels, refiner.spec, cam.focal_px, r).inputs
     row["plain_refiner"] = _best_ms(lambda: predict(generator, inputs), max(1, repeat // 2))
     row["fast_refiner_nocrop"] = _best_ms(lambda: refiner(inputs), max(1, repeat // 2))
     # the render loop as the stage runs it: EXR writing on a background thread
@@ -146,8 +146,10 @@ def main() -> None:
     args = parser.parse_args()
     wp.config.quiet = True
     p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
-    generator, _ = load_generator(SHIPPED_WEIGHTS)
-    refiner = Refiner(generator, splat=args.splat)
+    generator, meta = load_generator(SHIPPED_WEIGHTS)
+    shipped = InputSpec.of(meta["config"])
+    refiner = Refiner(generator, spec=InputSpec(shipped.auxiliary, args.splat, shipped.features,
+                                                shipped.working_radius_px))
     ss, launch, shader = ScreenSpace("cpu"), Launcher("cpu"), Shader("cpu")
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     x_pbf, r_pbf = _pbf_frame(50_000)

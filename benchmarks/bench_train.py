@@ -13,7 +13,7 @@ import torch
 
 from pipeline.config import load
 from pipeline.device import choose_device
-from pipeline.model.data import input_channel_count
+from pipeline.model.data import InputSpec
 from pipeline.model.networks import count_parameters
 from pipeline.model.trainer import Refiner, predict
 
@@ -29,7 +29,7 @@ def main() -> None:
     device = choose_device(loaded.config.device)
     refiner = Refiner(cfg, device, seed=0)
     rng = np.random.default_rng(0)
-    c = input_channel_count(cfg.auxiliary_features)
+    c = InputSpec.of(cfg).channels
     x = rng.normal(size=(cfg.batch_size, c, args.crop, args.crop)).astype(np.float32)
     y = rng.normal(size=(cfg.batch_size, 3, args.crop, args.crop)).astype(np.float32).clip(-1, 1)
     print(f"device {device}, torch {torch.__version__}, {torch.get_num_threads()} threads; generator "

@@ -17,8 +17,9 @@ from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
 from pipeline.evaluate.metrics import refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
-from pipeline.model.data import input_channels, make_input
+from pipeline.model.data import input_channels, prepare
 from pipeline.model.inference import Refiner
+from pipeline.model.scale import upsample_normals
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
@@ -100,15 +101,21 @@ class RenderedFrame:
                   attributes=camera_attributes(camera, fps, p.sensor_width_mm, frame))
 
 
-def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5, focal_px: float | None = None,
+           radius: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Refined unit normals and their fluid mask from a view's screen-space channels.
 
-    Pixels whose predicted normal is shorter than ``threshold`` are dropped as noise (Choi et al.,
-    section 3.3), and so are pixels without splatted fluid (there is no depth to shade there).
+    The view goes to the refiner's working scale and its output back to the view's size
+    (``pipeline.model.scale``); scale-free inputs need the image's focal length in pixels and the
+    particle radius. Pixels whose predicted normal is shorter than ``threshold`` are dropped as
+    noise (Choi et al., section 3.3), and so are pixels without splatted fluid (there is no depth to
+    shade there).
     """
     names = input_channels(refiner.splat)
     fluid = channels[names.fluid] > 0
-    n = refiner(make_input(channels, refiner.auxiliary, refiner.splat), fluid)
+    view = prepare(channels, refiner.spec, focal_px, radius)
+    n = refiner(view.inputs, view.fluid)
+    n = upsample_normals(n, fluid.shape)
     mask = refined_mask(n, fluid, threshold)
     length = np.linalg.norm(n, axis=-1)
     return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
@@ -151,7 +158,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method == "refined":
         names = input_channels(refiner.splat)
         with t("refiner"):
-            n, mask = refine(refiner, ch, threshold)
+            n, mask = refine(refiner, ch, threshold, camera.focal_px, radius)
         return {"normals": n, "depth": np.where(mask, ch[names.blurred], 0.0), "mask": mask.astype(np.float32),
                 "thickness": ch[names.thickness]}
     thickness = ch["thickness"]

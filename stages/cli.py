@@ -73,9 +73,13 @@ def export(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = Fa
 def refine(pattern: Annotated[str, typer.Argument(help="EXRs with the generator's input channels (a glob or {})")],
            out: Annotated[Path, typer.Option(help="folder for the refined normal EXRs")],
            weights: Annotated[str, typer.Option(help="'shipped' or a checkpoint")] = "shipped", force: Force = False,
-           threshold: Annotated[float, typer.Option(help="drop normals shorter than this (noise)")] = 0.5):
+           threshold: Annotated[float, typer.Option(help="drop normals shorter than this (noise)")] = 0.5,
+           radius: Annotated[float, typer.Option(help="particle radius, when the EXRs' headers lack "
+                                                      "particleRadius")] = 0.0,
+           fov: Annotated[float, typer.Option(help="vertical field of view (degrees), when the headers lack the "
+                                                   "camera")] = 0.0):
     """Refine your own screen-space EXRs into refined normal EXRs (N.X N.Y N.Z, mask)."""
-    _run("refine", StageOptions(force=force), pattern, out, weights, threshold)
+    _run("refine", StageOptions(force=force), pattern, out, weights, threshold, radius, fov)
 
 
 @app.command("cache")

@@ -29,10 +29,13 @@ log = logging.getLogger("deep_ssfr")
 
 def sequences(run: Run) -> list[HeldOut]:
     """The sequences training never saw: every camera of the held-out and imported scenes, the
-    validation camera of the others."""
+    validation camera of the others. Scenes that chose the trainer's best checkpoint
+    (``train.validation_scenes``) are left out."""
     cfg = run.config
     pairs = []
     for scene in run.loaded.scenes.values():
+        if scene.name in cfg.train.validation_scenes:
+            continue
         if scene.name in cfg.dataset.holdout_scenes:
             pairs += [(scene, c) for c in CAMERAS]
         elif cfg.dataset.validation_camera != "none":
@@ -46,13 +49,25 @@ def sequences(run: Run) -> list[HeldOut]:
     return out
 
 
+def sized_runs(opts: StageOptions) -> list[Run]:
+    """One run per evaluated size (``evaluate.sizes``; the dataset's own size when empty), each reading
+    the held-out views of that size."""
+    run = make_run(opts)
+    sizes = run.config.evaluate.sizes
+    if not sizes:
+        return [run]
+    return [make_run(opts, {"dataset": {"width": s, "height": s}}) for s in sizes]
+
+
 def main(opts: StageOptions) -> None:
     """``deep-ssfr evaluate``."""
-    run = make_run(opts)
+    runs = sized_runs(opts)
+    run = runs[0]
     methods = tuple(run.config.evaluate.methods)
     refiner, weights = render.load_refiner(run) if "refined" in methods else (None, "")
-    seqs = sequences(run)
-    keys = {f"{s.scene.name}/{s.camera}": dataset.ensure(run, s.scene).key for s in seqs}
+    seqs = {r.config.dataset.width: sequences(r) for r in runs}
+    keys = {f"{size}/{s.scene.name}/{s.camera}": dataset.ensure(r, s.scene).key
+            for r, (size, group) in zip(runs, seqs.items(), strict=True) for s in group}
     entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
                         {"evaluate": to_dict(run.config.evaluate), "render": to_dict(run.config.render)},
                         {**keys, "weights": weights}, run.device)
@@ -60,20 +75,27 @@ def main(opts: StageOptions) -> None:
         log.info("evaluate: cached (%s)", entry.dir / "report.md")
         return
     start = time.perf_counter()
-    cfg, device = run.config, run.device  # a Ray task carries these, not the run
-    results = run_tasks(lambda s: evaluate_sequence(s, cfg, refiner, methods, device), seqs, cfg.executor,
-                        cfg.ray_address)
-    table = aggregate(results, methods)
-    evaluation_figures(entry.dir, results, table, methods)
-    write_report(entry.dir, results, table, methods, weights)
-    slim = [{k: v for k, v in r.items() if k != "examples"} for r in results]
-    cache.write_json_atomic(entry.path("metrics.json"), {"overall": table, "sequences": slim})
+    by_size = {}
+    for r, (size, group) in zip(runs, seqs.items(), strict=True):
+        cfg, device = r.config, r.device  # a Ray task carries these, not the run
+        results = run_tasks(lambda s, cfg=cfg, device=device: evaluate_sequence(s, cfg, refiner, methods, device),
+                            group, cfg.executor, cfg.ray_address)
+        by_size[size] = (results, aggregate(results, methods))
+        for m in methods:
+            t = by_size[size][1][m]
+            log.info("evaluate %4d px %-9s mean %6.2f deg, median %5.2f, <10 deg %5.1f%%, IoU %.3f, PSNR %.2f, "
+                     "flicker %.2f, %.0f ms/frame", size, m, t["mean_deg"], t["median_deg"], 100 * t["under_10"],
+                     t["iou"], t["psnr"], t["flicker_deg"], t["ms_per_frame"])
+    first = next(iter(by_size))
+    evaluation_figures(entry.dir, *by_size[first], methods)
+    write_report(entry.dir, by_size, methods, weights)
+    slim = {str(size): {"overall": table, "sequences": [{k: v for k, v in r.items() if k != "examples"}
+                                                        for r in results]}
+            for size, (results, table) in by_size.items()}
+    cache.write_json_atomic(entry.path("metrics.json"), {"overall": by_size[first][1],
+                                                          "sequences": slim[str(first)]["sequences"], "sizes": slim})
     entry.finish(["report.md", "metrics.json", "methods.png", "frames.png", "examples.png"], {},
                  wall_seconds=round(time.perf_counter() - start, 1))
-    for m in methods:
-        r = table[m]
-        log.info("evaluate %-9s mean %6.2f deg, <10 deg %5.1f%%, IoU %.3f, PSNR %.2f, SSIM %.3f, %.0f ms/frame", m,
-                 r["mean_deg"], 100 * r["under_10"], r["iou"], r["psnr"], r["ssim"], r["ms_per_frame"])
     log.info("evaluate: report in %s", entry.path("report.md"))
 
 

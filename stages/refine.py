@@ -5,12 +5,16 @@ ellipsoid-trained weights ``aniso_bilateral.N.X/Y/Z`` (filtered view-space norma
 (raw splat depth), ``aniso_bilateral.Z`` (filtered depth) and ``aniso.A`` (fluid mask); for
 sphere-trained weights the same without the ``aniso`` prefixes. ``deep-ssfr dataset`` writes such
 files. Each output ``DIR/<input name>`` holds ``N.X N.Y N.Z`` (refined unit normals, view space)
-and ``mask``; outputs that exist are kept unless ``--force``.
+and ``mask``; outputs that exist are kept unless ``--force``. The scale-free inputs of the shipped
+weights also need each image's focal length in pixels and the particle radius: read from the
+header (the standard ``pinholeFocalLength`` and ``sensorOverallDimensions``, and ``particleRadius``,
+as ``deep-ssfr dataset`` writes them), else from ``--fov`` and ``--radius``.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -18,9 +22,9 @@ from tqdm import tqdm
 
 from pipeline.config import ConfigError
 from pipeline.device import choose_device
-from pipeline.exr import read_exr, write_exr
+from pipeline.exr import read_exr, read_exr_header, write_exr
 from pipeline.methods import refine
-from pipeline.model.data import input_channels
+from pipeline.model.data import input_channels, view_geometry
 from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
 from pipeline.particles.sequence import numbered_files
 from stages.common import StageOptions
@@ -28,10 +32,21 @@ from stages.common import StageOptions
 log = logging.getLogger("deep_ssfr")
 
 
-def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", threshold: float = 0.5) -> None:
+def geometry(path: Path, height: int, radius: float, fov_deg: float) -> tuple[float | None, float | None]:
+    """(focal length in px, particle radius) of an input EXR: its header, else the command line's."""
+    focal_px, r = view_geometry(read_exr_header(path))
+    if fov_deg > 0:
+        focal_px = 0.5 * height / math.tan(math.radians(fov_deg) / 2)
+    return focal_px, radius if radius > 0 else r
+
+
+def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", threshold: float = 0.5,
+         radius: float = 0.0, fov_deg: float = 0.0) -> None:
     """Refine every EXR ``pattern`` matches (in frame-number order) into ``out``."""
     if not 0.0 <= threshold <= 1.0:
         raise ConfigError("command line", "--threshold", f"must be between 0 and 1, got {threshold}")
+    if radius < 0 or not 0 <= fov_deg < 180:
+        raise ConfigError("command line", "--radius" if radius < 0 else "--fov", "out of range")
     files = [path for _, path in numbered_files(pattern) if path.suffix.lower() == ".exr"]
     if not files:
         raise FileNotFoundError(f"{pattern}: no EXR file matches the pattern")
@@ -43,7 +58,12 @@ def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", 
         target = Path(out) / path.name
         if target.exists() and not opts.force:
             continue
-        normals, mask = refine(refiner, read_exr(path, wanted), threshold)
+        channels = read_exr(path, wanted)
+        focal_px, r = geometry(path, channels[names.raw].shape[0], radius, fov_deg)
+        if refiner.spec.features == "radius" and (focal_px is None or r is None):
+            raise ValueError(f"{path}: the header gives no {'particleRadius' if r is None else 'camera'}; pass "
+                             f"{'--radius' if r is None else '--fov'}")
+        normals, mask = refine(refiner, channels, threshold, focal_px, r)
         channels = {f"N.{a}": normals[..., k] for k, a in enumerate("XYZ")}
         write_exr(target, {**channels, "mask": mask.astype("float32")})
         done += 1

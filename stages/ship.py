@@ -41,9 +41,18 @@ def card(run, entry: cache.CacheEntry, state: dict) -> dict:
         "data": {
             "scenes_trained": train.train_scenes(run),
             "held_out_scenes": list(cfg.dataset.holdout_scenes),
-            "validation": f"{cfg.dataset.validation_camera} camera of every scene + all of the held-out scenes",
+            "validation": (f"best epoch chosen on {', '.join(cfg.train.validation_scenes)} (held out, not reported "
+                           "by evaluate)" if cfg.train.validation_scenes else
+                           f"{cfg.dataset.validation_camera} camera of every scene + all of the held-out scenes"),
             "frames": f"{cfg.simulate.frames} simulated frames per scene, every {cfg.dataset.frame_stride}, "
-                      f"{cfg.dataset.width}x{cfg.dataset.height}, filters '{cfg.dataset.filter_mode}'",
+                      f"{cfg.dataset.width}x{cfg.dataset.height} from the scenes' two cameras, plus "
+                      f"{cfg.dataset.random_views} random views a frame (sides {cfg.dataset.random_size[0]}-"
+                      f"{cfg.dataset.random_size[1]} px, particles {cfg.dataset.random_radius_px[0]:g}-"
+                      f"{cfg.dataset.random_radius_px[1]:g} px on screen) of the simulated training scenes; "
+                      f"filters '{cfg.dataset.filter_mode}'",
+            "training_views": len(train.collect(run)[1]),
+            "input_features": cfg.train.input_features,
+            "working_radius_px": cfg.train.working_radius_px,
             "input_splat": cfg.train.input_splat,
             "particle_radius_m": cfg.simulate.particle_radius,
             "dataset_keys": manifest.get("inputs", {}),

@@ -15,7 +15,7 @@ from pathlib import Path
 from pipeline import cache
 from pipeline.config import to_dict
 from pipeline.model import distributed
-from pipeline.model.train import fit
+from pipeline.model.train import TimeLimitReached, fit
 from stages import dataset
 from stages.common import Run, StageError, StageOptions, make_run
 
@@ -37,11 +37,16 @@ def collect(run: Run) -> tuple[dict[str, str], list[Path], list[Path]]:
     keys, train, val = {}, [], []
     chosen = set(train_scenes(run))
     held_out = set(run.config.dataset.holdout_scenes)
+    validating = set(run.config.train.validation_scenes) or held_out
+    for name in validating - held_out:
+        raise StageError(f"train.validation_scenes names {name!r}, which is not in dataset.holdout_scenes")
     for scene in run.loaded.scenes.values():
+        if scene.name in held_out and scene.name not in validating:
+            continue  # evaluated only: training never reads it
         entry = dataset.ensure(run, scene)
         keys[scene.name] = entry.key
         for rec in entry.manifest()["frames"]:
-            if rec["split"] == "val" or scene.name in held_out:
+            if scene.name in held_out or rec["split"] == "val":
                 val.append(entry.path(rec["file"]))
             elif scene.name in chosen:
                 train.append(entry.path(rec["file"]))
@@ -54,7 +59,8 @@ def collect(run: Run) -> tuple[dict[str, str], list[Path], list[Path]]:
 def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
     """Keyed on the training config (except ``epochs``: more epochs continue a run) and the data."""
     config = to_dict(run.config.train)
-    for how_not_what in ("epochs", "loader_workers", "cached_frames"):  # they do not change the weights
+    # these change how long or how a run goes, not its weights
+    for how_not_what in ("epochs", "loader_workers", "cached_frames", "time_limit_minutes"):
         config.pop(how_not_what)
     config["seed"] = run.config.seed
     config["holdout_scenes"] = list(run.config.dataset.holdout_scenes)
@@ -81,7 +87,14 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     folder = world.share(folder)
     if folder is None:
         return entry
-    best = fit(Path(folder), cfg, run.config.seed, train_paths, val_paths, run.device)
+    try:
+        best = fit(Path(folder), cfg, run.config.seed, train_paths, val_paths, run.device)
+    except TimeLimitReached as stop:
+        if world.is_main:
+            entry.release()
+            log.info("train: %d of %d epochs done in %s; run the same command again to continue", stop.epoch,
+                     cfg.epochs, folder)
+        return entry
     if world.is_main:
         entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=cfg.epochs,
                      best_val_mean_deg=best, processes=world.size)

@@ -24,11 +24,23 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
+from pipeline.camera import Camera, look_at
 from pipeline.config import TrainConfig
-from pipeline.model.data import CropDataset, DiskBatches, Frame, MemoryBatches, draw_crop, load_frame, random_crops
+from pipeline.dataset import view_attributes
+from pipeline.model.data import (
+    CropDataset,
+    DiskBatches,
+    Frame,
+    InputSpec,
+    MemoryBatches,
+    draw_crop,
+    load_frame,
+    random_crops,
+)
 from pipeline.model.trainer import Refiner, seed_everything
 from tests.conftest import ROOT
 
+SPEC = InputSpec(True, "ellipsoid")
 TINY = {"crop": 32, "batch_size": 2, "crops_per_frame": 2, "gen_base_channels": 8, "gen_res_blocks": 1,
         "disc_base_channels": 8, "disc_layers": 2, "val_frames": 2}
 
@@ -57,7 +69,8 @@ def _write_frames(folder: Path, count: int, size: int = 48) -> list[Path]:
     paths = []
     for k in range(count):
         path = folder / f"frame_{k:04d}.exr"
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  **view_attributes(Camera(look_at((0, 0, 2), (0, 0, 0)), 40.0, size, size), 0.01)}
         OpenEXR.File(header, _ball_channels(size, k)).write(str(path))
         paths.append(path)
     return paths
@@ -98,7 +111,7 @@ def test_memory_data_trains_exactly_as_the_loop_before_disk_data_and_ddp(tmp_pat
     paths = _write_frames(tmp_path / "frames", 5)
     cfg = TrainConfig(epochs=2, threads=1, **TINY)
     fit(tmp_path / "run", cfg, 3, paths[:4], paths[4:], "cpu")
-    refiner, frames = Refiner(cfg, "cpu", seed=3), [load_frame(p, True, "ellipsoid") for p in paths[:4]]
+    refiner, frames = Refiner(cfg, "cpu", seed=3), [load_frame(p, SPEC) for p in paths[:4]]
     for epoch in (1, 2):  # the training loop as it was
         rng = np.random.default_rng([3, epoch])
         seed_everything(3 * 100_003 + epoch)
@@ -119,7 +132,7 @@ def test_disk_batches_are_equal_for_0_and_2_workers_after_a_resume_and_split_ove
     steps, batch = 3, 4
 
     def source(workers: int, rank: int = 0, world: int = 1) -> DiskBatches:
-        return DiskBatches(CropDataset(paths, 16, 5, True, "ellipsoid", cached_frames=2), steps, batch, workers,
+        return DiskBatches(CropDataset(paths, 16, 5, SPEC, cached_frames=2), steps, batch, workers,
                            rank, world)
 
     straight = source(0)
@@ -132,7 +145,7 @@ def test_disk_batches_are_equal_for_0_and_2_workers_after_a_resume_and_split_ove
     halves = [_epoch_batches(source(0, rank, 2), 2, steps) for rank in (0, 1)]
     for s in range(steps):  # two processes read the two halves of each global batch
         assert np.array_equal(np.concatenate([halves[0][s][0], halves[1][s][0]]), second[s][0])
-    memory = MemoryBatches([load_frame(p, True, "ellipsoid") for p in paths], 16, batch, 5, rank=1, world=2)
+    memory = MemoryBatches([load_frame(p, SPEC) for p in paths], 16, batch, 5, rank=1, world=2)
     whole = MemoryBatches(memory.frames, 16, batch, 5)
     for (xa, _), (xb, _) in zip(_epoch_batches(memory, 1, steps), _epoch_batches(whole, 1, steps), strict=True):
         assert np.array_equal(xa, xb[batch // 2:])
@@ -140,10 +153,10 @@ def test_disk_batches_are_equal_for_0_and_2_workers_after_a_resume_and_split_ove
 
 def test_a_disk_sample_is_the_shared_crop_rule_on_its_frame(tmp_path):
     paths = _write_frames(tmp_path, 3)
-    dataset = CropDataset(paths, 16, 9, True, "ellipsoid", cached_frames=0)
+    dataset = CropDataset(paths, 16, 9, SPEC, cached_frames=0)
     x, y = dataset[(4, 17)]
     rng = np.random.default_rng([9, 4, 17])
-    want = draw_crop(load_frame(paths[int(rng.integers(3))], True, "ellipsoid"), 16, rng)
+    want = draw_crop(load_frame(paths[int(rng.integers(3))], SPEC), 16, rng)
     assert np.array_equal(x, want[0]) and np.array_equal(y, want[1])
     centres = [np.abs(dataset[(1, i)][1][:, 8, 8]).sum() > 0 for i in range(60)]
     assert np.mean(centres) > 0.7, "crops are centred on fluid 90% of the time"
@@ -189,7 +202,7 @@ def test_ddp_of_two_cpu_processes_trains_resumes_like_a_straight_run_and_its_che
         assert torch.equal(v, resumed["generator"][k]), k
     assert [h["processes"] for h in straight["history"]] == [2, 2]
     refiner = load_refiner(tmp_path / "straight" / "best.pt")
-    frame = load_frame(tmp_path / "frames" / "frame_0004.exr", True, "ellipsoid")
+    frame = load_frame(tmp_path / "frames" / "frame_0004.exr", SPEC)
     assert np.isfinite(refiner(frame.inputs, frame.fluid)).all()
     assert not (tmp_path / "odd" / "last.pt").exists()
     assert not list(tmp_path.rglob("*.tmp-*"))

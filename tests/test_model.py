@@ -13,7 +13,7 @@ import torch
 import yaml
 
 from pipeline.config import TrainConfig
-from pipeline.model.data import make_input
+from pipeline.model.data import InputSpec, prepare
 from pipeline.model.losses import normal_constraint_loss
 from pipeline.model.networks import Discriminator, Generator
 from pipeline.model.trainer import Refiner
@@ -78,7 +78,8 @@ def _ball_frames(size: int = 64):
         cam = Camera(look_at((0.0, 0.1, 0.6), (0, 0, 0)), 40.0, size, size)
         ch = screen_space_inputs(pts.astype(np.float32), r, cam, p, ss, filters=("bilateral",))
         ch.update(target_channels(reconstruct(pts.astype(np.float32), r, p, launch), cam, launch))
-        frames.append((make_input(ch), np.stack([ch[f"target.N.{a}"] for a in "XYZ"])))
+        view = prepare(ch, InputSpec(True, "sphere"), cam.focal_px, r, with_target=True)
+        frames.append((view.inputs, view.target))
     ss.close()
     launch.close()
     return frames
@@ -162,3 +163,48 @@ def test_a_crop_larger_than_the_images_is_an_error(tmp_path, capsys):
     assert cli.main(["train", "--config", config]) == 1
     err = capsys.readouterr().err
     assert "train.crop is 96 px but the dataset's images are 64x64" in err
+
+
+def test_a_time_limit_stops_at_an_epoch_and_the_next_run_continues(tmp_path):
+    """``train.time_limit_minutes``: a run stops after the first epoch past the limit with its
+    checkpoint written and the entry unfinished; the next run resumes and ends where a straight run
+    ends, bit for bit."""
+    from stages import cli
+
+    straight = _tiny_train_config(tmp_path, "straight")
+    chunked = _tiny_train_config(tmp_path, "chunked")
+    body = yaml.safe_load(open(chunked))
+    body["train"]["time_limit_minutes"] = 1e-6
+    open(chunked, "w").write(yaml.safe_dump(body))
+    assert cli.main(["train", "--config", chunked]) == 0
+    state, epoch = _generator_state(tmp_path, "chunked")
+    assert epoch == 1
+    (entry,) = (tmp_path / "chunked" / "data" / "train").iterdir()
+    assert not (entry / "manifest.json").exists()
+    assert cli.main(["train", "--config", chunked]) == 0
+    assert (entry / "manifest.json").exists()
+    assert cli.main(["train", "--config", straight]) == 0
+    a, ea = _generator_state(tmp_path, "straight")
+    b, eb = _generator_state(tmp_path, "chunked")
+    assert ea == eb == 2
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_init_from_loads_matching_weights_and_names_a_mismatch(tmp_path):
+    from pipeline.model.train import TrainingError, init_generator
+
+    cfg = TrainConfig(gen_base_channels=8, gen_res_blocks=1, disc_base_channels=8, disc_layers=2)
+    source = Refiner(cfg, "cpu", seed=1)
+    path = tmp_path / "source.pt"
+    torch.save(source.state(3), path)
+    fresh = Refiner(cfg, "cpu", seed=2)
+    assert not all(torch.equal(v, source.generator.state_dict()[k]) for k, v in fresh.generator.state_dict().items())
+    init_generator(fresh, str(path))
+    for k, v in fresh.generator.state_dict().items():
+        assert torch.equal(v, source.generator.state_dict()[k]), k
+    wider = Refiner(TrainConfig(gen_base_channels=16, gen_res_blocks=1, disc_base_channels=8, disc_layers=2), "cpu")
+    with pytest.raises(TrainingError, match="base_channels"):
+        init_generator(wider, str(path))
+    with pytest.raises(TrainingError, match="no checkpoint"):
+        init_generator(wider, str(tmp_path / "missing.pt"))

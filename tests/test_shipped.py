@@ -12,9 +12,11 @@ import yaml
 from pipeline.camera import camera_for_frame
 from pipeline.config import load
 from pipeline.evaluate.metrics import angular_errors, normal_mask
-from pipeline.model.data import input_channels, make_input
+from pipeline.methods import refine
+from pipeline.model.data import input_channels
 from pipeline.model.inference import SHIPPED_WEIGHTS as SHIPPED
-from pipeline.model.trainer import load_generator, predict
+from pipeline.model.inference import load_refiner
+from pipeline.model.trainer import load_generator
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.sim.pbf import PBFSolver
@@ -54,13 +56,12 @@ def test_shipped_weights_beat_the_bilateral_input_on_an_unseen_scene():
     ch.update(target_channels(reconstruct(x, r, p, launch), cam, launch))
     ss.close()
     launch.close()
-    generator, meta = load_generator(SHIPPED)
-    splat = meta["config"].get("input_splat", "sphere")
-    refined = predict(generator, make_input(ch, True, splat))
+    refiner = load_refiner(SHIPPED)
+    refined, mask = refine(refiner, ch, 0.5, cam.focal_px, r)
     target = np.stack([ch[f"target.N.{a}"] for a in "XYZ"], -1)
-    given = np.stack([ch[name] for name in input_channels(splat).normal], -1)
+    given = np.stack([ch[name] for name in input_channels(refiner.splat).normal], -1)
     t_mask = normal_mask(target)
-    e_refined = angular_errors(refined, target, normal_mask(refined) & t_mask)
+    e_refined = angular_errors(refined, target, mask & t_mask)
     e_input = angular_errors(given, target, normal_mask(given) & t_mask)
     assert t_mask.mean() > 0.05
     assert e_refined.mean() < e_input.mean(), (e_refined.mean(), e_input.mean())

@@ -43,10 +43,10 @@ class HeldOut:
     particle_radius: float
 
 
-def _maps(method: str, ch: dict, refiner, threshold: float):
+def _maps(method: str, ch: dict, refiner, threshold: float, focal_px: float, radius: float):
     """(normals, mask, depth) of a method from a dataset frame's channels."""
     if method == "refined":
-        n, mask = refine(refiner, ch, threshold)
+        n, mask = refine(refiner, ch, threshold, focal_px, radius)
         return n, mask, ch[input_channels(refiner.splat).blurred]
     if method == "mesh":
         return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
@@ -70,7 +70,8 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
             bg, bg_depth = background.render(cam)
             bg = shader.fill_sky(bg, bg_depth, cam, rp)
             target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
-            maps = {m: _maps(m, ch, refiner, rp.normal_threshold) for m in (*methods, "mesh")}
+            maps = {m: _maps(m, ch, refiner, rp.normal_threshold, cam.focal_px, seq.particle_radius)
+                    for m in (*methods, "mesh")}
             shaded = {}
             for m, (n, mask, depth) in maps.items():
                 src = {"normals": n.astype(np.float32), "depth": np.where(mask, depth, 0).astype(np.float32),
@@ -95,8 +96,20 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     timings = time_methods(seq, config, (*methods, "mesh"), refiner, device)
     result = {m: _summary(m, scores, timings) for m in methods}
     result["mesh"] = {"ms_per_frame": timings["mesh"]}
-    return {"scene": seq.scene.name, "camera": seq.camera, "frames": len(records), "methods": result,
-            "examples": examples}
+    return {"scene": seq.scene.name, "camera": seq.camera, "frames": len(records), "size": [width, height],
+            "radius_px": _median_radius(seq, records, width, height), "methods": result, "examples": examples}
+
+
+def _median_radius(seq: HeldOut, records: list[dict], width: int, height: int) -> float:
+    """Median projected particle radius (px) over the sequence's evaluated frames."""
+    from pipeline.model.scale import median_radius_px
+
+    radii = []
+    for r in records[:: max(1, len(records) // 4)]:
+        cam = camera_for_frame(seq.scene.cameras, seq.camera, r["index"], len(seq.records), width, height)
+        raw = read_exr(seq.dataset_dir / r["file"], ["Z"])["Z"]
+        radii.append(median_radius_px(raw, cam.focal_px, seq.particle_radius))
+    return float(np.median(radii)) if radii else 0.0
 
 
 def _summary(m: str, scores: dict, timings: dict) -> dict:

@@ -1,16 +1,18 @@
-"""Refiner training data: dataset-stage EXR frames as tensors, random crops, flips, and the two
-sources of training batches: every frame decoded into memory (``MemoryBatches``) or crops read
-lazily from the EXRs by DataLoader workers (``CropDataset``, ``DiskBatches``), both cut by one
-crop rule (``draw_crop``) and both split over data-parallel processes by global-batch slices.
+"""Refiner training data: dataset-stage EXR frames as tensors, random crops, flips and quarter turns,
+and the two sources of training batches: every frame decoded into memory (``MemoryBatches``) or
+crops read lazily from the EXRs by DataLoader workers (``CropDataset``, ``DiskBatches``), both cut
+by one crop rule (``draw_crop``) and both split over data-parallel processes by global-batch slices.
 
-Input channels (in order): the bilateral screen-space normal (3), then, with auxiliary features,
-the raw splat depth and the bilateral (blurred) depth, of the sphere splat (``splat="sphere"``:
+A view first goes to the working scale (``pipeline.model.scale``: particles at most
+``working_radius_px`` on screen). Input channels (in order): the bilateral screen-space normal (3),
+then, with auxiliary features, depth features of the sphere splat (``splat="sphere"``:
 ``bilateral.N.*``, ``Z``, ``bilateral.Z``) or of the ellipsoid splat (``"ellipsoid"``:
-``aniso_bilateral.N.*``, ``aniso.Z``, ``aniso_bilateral.Z``). Depths are normalised per frame as
-(d - mu) / sigma with mu, sigma the mean and standard deviation of the raw depth over fluid
-pixels, and 0 on background: scale-free, so scenes of any size and distance look alike, while
-the difference between raw and blurred depth (the bumps) survives. Target: the mesh normal (3),
-the zero vector where the mesh shows no fluid.
+``aniso_bilateral.N.*``, ``aniso.Z``, ``aniso_bilateral.Z``). With ``features="radius"`` they are
+scale-free: depth differences in particle radii and the projected radius in pixels
+(``depth_features``), so the same fluid seen from further away or at another resolution gives the
+network the same inputs. ``"frame"`` (the weights shipped before 2026-12) normalises the depths by
+the frame's mean and spread, which depends on how large the scene is against its particles. Target:
+the mesh normal (3), the zero vector where the mesh shows no fluid.
 """
 
 from __future__ import annotations
@@ -25,7 +27,9 @@ import numpy as np
 import torch
 import torch.utils.data
 
-from pipeline.exr import read_exr
+from pipeline.cache import CacheError
+from pipeline.exr import read_exr, read_exr_header
+from pipeline.model.scale import ScaledView, projected_radius_px, scale_view
 
 Splat = Literal["sphere", "ellipsoid"]
 TARGET = ["target.N.X", "target.N.Y", "target.N.Z"]
@@ -50,31 +54,134 @@ def input_channels(splat: Splat = "sphere") -> InputChannels:
                          f"{raw}thickness")
 
 
-def input_channel_count(auxiliary: bool) -> int:
-    """5 with the depth features, 3 without."""
-    return 5 if auxiliary else 3
+Features = Literal["radius", "frame"]
 
 
-def make_input(channels: dict[str, np.ndarray], auxiliary: bool = True, splat: Splat = "sphere") -> np.ndarray:
-    """C x H x W float32 generator input from a frame's channels."""
-    names = input_channels(splat)
-    normal = np.stack([channels[c] for c in names.normal])
-    if not auxiliary:
-        return normal.astype(np.float32)
-    raw, blurred = channels[names.raw], channels[names.blurred]
-    fluid = raw > 0
+@dataclass(frozen=True)
+class InputSpec:
+    """How a refiner's input is made from a view (recorded in its checkpoint's training config):
+    ``auxiliary`` depth features, the ``splat`` kind, the depth ``features`` ('radius' or 'frame')
+    and the ``working_radius_px`` the view is scaled to (``pipeline.model.scale``; 0: never)."""
+
+    auxiliary: bool = True
+    splat: Splat = "ellipsoid"
+    features: Features = "radius"
+    working_radius_px: float = 3.0
+
+    @classmethod
+    def of(cls, cfg) -> InputSpec:
+        """The spec of a training config (a ``TrainConfig`` or its plain dict in a checkpoint).
+
+        Checkpoints from before the scale-free inputs lack the keys: frame features, no rescale."""
+        get = (lambda k, d: cfg.get(k, d)) if isinstance(cfg, dict) else (lambda k, d: getattr(cfg, k, d))
+        features = get("input_features", "frame")
+        return cls(bool(get("auxiliary_features", True)), get("input_splat", "sphere"), features,
+                   float(get("working_radius_px", 0.0)) if features == "radius" else 0.0)
+
+    @property
+    def channels(self) -> int:
+        """Generator input channels: the normal (3), with depth features 2 more ('frame') or 3
+        ('radius': bumps, relief, projected radius)."""
+        if not self.auxiliary:
+            return 3
+        return 6 if self.features == "radius" else 5
+
+
+BUMP_CLIP_RADII = 3.0
+"""Raw minus filtered depth is clipped to this many particle radii (a step to a layer behind)."""
+RELIEF_WINDOW_RADII = 6.0
+"""Half width of the neighbourhood the relief feature compares the filtered depth with (projected radii)."""
+RELIEF_SCALE_RADII = 4.0
+"""Relief of this many particle radii maps to tanh(1)."""
+
+
+def depth_features(raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray, focal_px: float,
+                   radius: float) -> np.ndarray:
+    """The scale-free depth features of a view (3 x H x W, 0 outside the fluid).
+
+    1. bumps: raw minus filtered depth in particle radii (clipped to +-3), the particles' own shape;
+    2. relief: tanh of the filtered depth minus its fluid average over a window of +-6 projected
+       radii, in units of 4 radii: which parts stand in front of their neighbourhood, what lies behind
+       a discontinuity; depth as such (metres from the camera) never enters;
+    3. log2 of the projected particle radius in pixels, halved: how large the particles are here.
+    Depths are metres and ``focal_px`` the focal length in pixels of this (possibly scaled) image."""
+    from scipy.ndimage import uniform_filter
+
+    m = fluid.astype(np.float32)
+    bumps = np.clip((raw - blurred) / radius, -BUMP_CLIP_RADII, BUMP_CLIP_RADII)
+    r_px = projected_radius_px(raw, focal_px, radius)
+    median = float(np.median(r_px[fluid])) if fluid.any() else 1.0
+    size = 2 * max(1, round(RELIEF_WINDOW_RADII * median)) + 1
+    local = uniform_filter(blurred * m, size, mode="constant") / np.maximum(uniform_filter(m, size, mode="constant"),
+                                                                             1e-6)
+    relief = np.tanh((blurred - local) / (RELIEF_SCALE_RADII * radius))
+    size_px = 0.5 * np.log2(np.maximum(r_px, 1e-3))
+    return np.where(fluid, np.stack([bumps, relief, size_px]), 0.0).astype(np.float32)
+
+
+def frame_features(raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray) -> np.ndarray:
+    """The depth features of the weights shipped before 2026-12 (2 x H x W): raw and filtered depth
+    as (d - mu) / sigma over the frame's fluid pixels."""
     if fluid.any():
         mu = float(raw[fluid].mean())
         sigma = float(raw[fluid].std()) + 1e-6
     else:
         mu, sigma = 0.0, 1.0
-    depths = [np.where(fluid, (d - mu) / sigma, 0.0) for d in (raw, blurred)]
-    return np.concatenate([normal, np.stack(depths)]).astype(np.float32)
+    return np.stack([np.where(fluid, (d - mu) / sigma, 0.0) for d in (raw, blurred)]).astype(np.float32)
+
+
+@dataclass
+class Prepared:
+    """A view ready for the generator: ``inputs`` (C x h x w) at the working ``scale`` against the
+    full image, its ``fluid`` mask there and, for training views, the ``target`` (3 x h x w)."""
+
+    inputs: np.ndarray
+    fluid: np.ndarray
+    scale: float
+    target: np.ndarray | None = None
+
+
+def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | None = None,
+            radius: float | None = None, with_target: bool = False) -> Prepared:
+    """The generator input of a view's channels (and with ``with_target`` its ``target.N.*``), scaled
+    to the working scale. 'radius' features need the image's focal length (px) and the particle
+    radius (the dataset writes both into every view's header: ``view_geometry``)."""
+    names = input_channels(spec.splat)
+    normal = np.stack([channels[c] for c in names.normal])
+    raw, blurred = channels[names.raw], channels[names.blurred]
+    target = np.stack([channels[c] for c in TARGET]).astype(np.float32) if with_target else None
+    if spec.features == "radius" and (not focal_px or not radius):
+        raise ValueError("scale-free refiner inputs need the focal length in pixels and the particle radius")
+    if spec.features == "radius":
+        view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target)
+    else:
+        view = ScaledView(normal.astype(np.float32), raw, blurred, raw > 0, 0.0, 1.0, target)
+    if not spec.auxiliary:
+        inputs = view.normals
+    elif spec.features == "radius":
+        inputs = np.concatenate([view.normals, depth_features(view.raw, view.blurred, view.fluid, view.focal_px,
+                                                              float(radius))])
+    else:
+        inputs = np.concatenate([view.normals, frame_features(view.raw, view.blurred, view.fluid)])
+    return Prepared(np.ascontiguousarray(inputs, np.float32), view.fluid, view.scale, view.target)
+
+
+def view_geometry(header: dict) -> tuple[float | None, float | None]:
+    """(focal length in pixels, particle radius) from a dataset view's EXR header (None for what it
+    lacks): the pinhole focal length and sensor size give the pixels, ``particleRadius`` the radius."""
+    radius = header.get("particleRadius")
+    focal_mm, sensor = header.get("pinholeFocalLength"), header.get("sensorOverallDimensions")
+    window = header.get("dataWindow")
+    focal_px = None
+    if focal_mm is not None and sensor is not None and window is not None:
+        (x0, y0), (x1, y1) = (np.asarray(v).ravel() for v in window)
+        focal_px = float(focal_mm) * max(x1 - x0 + 1, y1 - y0 + 1) / float(max(sensor))
+    return focal_px, None if radius is None else float(radius)
 
 
 @dataclass
 class Frame:
-    """One training example held in memory."""
+    """One training example held in memory (at the working scale)."""
 
     inputs: np.ndarray   # C x H x W
     target: np.ndarray   # 3 x H x W
@@ -82,12 +189,16 @@ class Frame:
     fluid: np.ndarray    # H x W bool: pixels the input splat shows as fluid
 
 
-def load_frame(path, auxiliary: bool = True, splat: Splat = "sphere") -> Frame:
-    """Read the channels a training example needs from a dataset EXR."""
-    names = input_channels(splat)
+def load_frame(path, spec: InputSpec) -> Frame:
+    """Read the channels a training example needs from a dataset EXR, at the working scale."""
+    names = input_channels(spec.splat)
     ch = read_exr(path, [*names.normal, names.raw, names.blurred, names.fluid, *TARGET])
-    return Frame(make_input(ch, auxiliary, splat), np.stack([ch[c] for c in TARGET]).astype(np.float32), str(path),
-                 ch[names.fluid] > 0)
+    focal_px, radius = view_geometry(read_exr_header(path)) if spec.features == "radius" else (None, None)
+    if spec.features == "radius" and (focal_px is None or radius is None):
+        raise CacheError(f"{path}: no camera or particleRadius in its header (a dataset from before the scale-free "
+                         f"inputs); rebuild it with `make dataset FORCE=1`")
+    view = prepare(ch, spec, focal_px, radius, with_target=True)
+    return Frame(view.inputs, view.target, str(path), view.fluid)
 
 
 def flip_horizontal(arr: np.ndarray, normal_slices: tuple[slice, ...]) -> np.ndarray:
@@ -98,31 +209,59 @@ def flip_horizontal(arr: np.ndarray, normal_slices: tuple[slice, ...]) -> np.nda
     return out
 
 
-def draw_crop(frame: Frame, crop: int, rng: np.random.Generator, flip: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def rotate_quarter(arr: np.ndarray, turns: int, normal_slices: tuple[slice, ...]) -> np.ndarray:
+    """Turn C x H x W images ``turns`` quarter turns anticlockwise, as a camera rolled the other way
+    would see them; every normal block's (X, Y) turns with the image: one turn maps (x, y) to (-y, x)."""
+    out = np.rot90(arr, turns, axes=(-2, -1)).copy()
+    for s in normal_slices:
+        x, y = out[s.start].copy(), out[s.start + 1].copy()
+        for _ in range(turns % 4):
+            x, y = -y, x
+        out[s.start], out[s.start + 1] = x, y
+    return out
+
+
+def pad_to(arr: np.ndarray, size: int) -> np.ndarray:
+    """C x H x W padded with zeros (empty pixels) at the bottom and right to at least ``size`` a side."""
+    _, h, w = arr.shape
+    if h >= size and w >= size:
+        return arr
+    return np.pad(arr, ((0, 0), (0, max(0, size - h)), (0, max(0, size - w))))
+
+
+def draw_crop(frame: Frame, crop: int, rng: np.random.Generator, flip: bool = True,
+              rotate: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """One ``crop`` x ``crop`` window of a frame's input and target: centred on a random pixel where the
     target shows fluid 90% of the time (anywhere when it shows none), mirrored left-right half the time
-    with ``flip``. The one crop rule of memory and disk training; the draws come from ``rng`` in a
-    fixed order, so equal generators give equal crops."""
-    _, h, w = frame.inputs.shape
-    fluid = np.flatnonzero(np.abs(frame.target).sum(0) > 0)
+    with ``flip`` and turned by a random number of quarter turns with ``rotate``; frames smaller than
+    the crop are padded with empty pixels. The one crop rule of memory and disk training; the draws
+    come from ``rng`` in a fixed order, so equal generators give equal crops."""
+    inputs, target = pad_to(frame.inputs, crop), pad_to(frame.target, crop)
+    _, h, w = inputs.shape
+    fluid = np.flatnonzero(np.abs(target).sum(0) > 0)
     if len(fluid) and rng.random() < 0.9:
         cy, cx = divmod(int(fluid[int(rng.integers(len(fluid)))]), w)
         y0 = int(np.clip(cy - crop // 2, 0, h - crop))
         x0 = int(np.clip(cx - crop // 2, 0, w - crop))
     else:
         y0, x0 = int(rng.integers(h - crop + 1)), int(rng.integers(w - crop + 1))
-    x = frame.inputs[:, y0:y0 + crop, x0:x0 + crop]
-    y = frame.target[:, y0:y0 + crop, x0:x0 + crop]
+    x = inputs[:, y0:y0 + crop, x0:x0 + crop]
+    y = target[:, y0:y0 + crop, x0:x0 + crop]
     if flip and rng.random() < 0.5:
         x = flip_horizontal(x, (slice(0, 3),))
         y = flip_horizontal(y, (slice(0, 3),))
+    if rotate:
+        turns = int(rng.integers(4))
+        if turns:
+            x = rotate_quarter(x, turns, (slice(0, 3),))
+            y = rotate_quarter(y, turns, (slice(0, 3),))
     return np.ascontiguousarray(x), np.ascontiguousarray(y)
 
 
 def random_crops(frames: list[Frame], crop: int, count: int, rng: np.random.Generator,
-                 flip: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                 flip: bool = True, rotate: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``count`` crops (:func:`draw_crop`) of frames picked at random, stacked with their targets."""
-    pairs = [draw_crop(frames[int(rng.integers(len(frames)))], crop, rng, flip) for _ in range(count)]
+    pairs = [draw_crop(frames[int(rng.integers(len(frames)))], crop, rng, flip, rotate) for _ in range(count)]
     return np.stack([x for x, _ in pairs]), np.stack([y for _, y in pairs])
 
 
@@ -134,10 +273,10 @@ class CropDataset(torch.utils.data.Dataset[tuple[np.ndarray, np.ndarray]]):
     resumed run reads what a straight one would. Each worker keeps its last ``cached_frames`` decoded
     frames (about 33 MiB each at 1024 x 1024), so memory no longer grows with the dataset."""
 
-    def __init__(self, paths: list[Path], crop: int, seed: int, auxiliary: bool = True, splat: Splat = "sphere",
-                 cached_frames: int = 4, flip: bool = True):
-        self.paths, self.crop, self.seed, self.flip = [Path(p) for p in paths], crop, seed, flip
-        self.auxiliary, self.splat, self.cached_frames = auxiliary, splat, cached_frames
+    def __init__(self, paths: list[Path], crop: int, seed: int, spec: InputSpec, cached_frames: int = 4,
+                 flip: bool = True, rotate: bool = False):
+        self.paths, self.crop, self.seed, self.flip, self.rotate = [Path(p) for p in paths], crop, seed, flip, rotate
+        self.spec, self.cached_frames = spec, cached_frames
         self._frames: OrderedDict[int, Frame] = OrderedDict()
 
     def frame(self, k: int) -> Frame:
@@ -145,7 +284,7 @@ class CropDataset(torch.utils.data.Dataset[tuple[np.ndarray, np.ndarray]]):
         if k in self._frames:
             self._frames.move_to_end(k)
             return self._frames[k]
-        frame = load_frame(self.paths[k], self.auxiliary, self.splat)
+        frame = load_frame(self.paths[k], self.spec)
         if self.cached_frames:
             self._frames[k] = frame
             while len(self._frames) > self.cached_frames:
@@ -156,7 +295,7 @@ class CropDataset(torch.utils.data.Dataset[tuple[np.ndarray, np.ndarray]]):
         """The crop (C x crop x crop) and its target (3 x crop x crop) of sample ``(epoch, index)``."""
         epoch, index = key
         rng = np.random.default_rng([self.seed, epoch, index])
-        return draw_crop(self.frame(int(rng.integers(len(self.paths)))), self.crop, rng, self.flip)
+        return draw_crop(self.frame(int(rng.integers(len(self.paths)))), self.crop, rng, self.flip, self.rotate)
 
 
 class EpochShard(torch.utils.data.Sampler[tuple[int, int]]):
@@ -191,22 +330,22 @@ class MemoryBatches:
     generator seeded by (seed, epoch), as they always have. Under several processes each one draws the
     whole global batch and keeps its slice."""
 
-    def __init__(self, frames: list[Frame], crop: int, batch_size: int, seed: int, rank: int = 0, world: int = 1):
-        self.frames, self.crop, self.batch_size, self.seed = frames, crop, batch_size, seed
+    def __init__(self, frames: list[Frame], crop: int, batch_size: int, seed: int, rank: int = 0, world: int = 1,
+                 rotate: bool = False):
+        self.frames, self.crop, self.batch_size, self.seed, self.rotate = frames, crop, batch_size, seed, rotate
         share = batch_size // world
         self.rows = slice(rank * share, (rank + 1) * share)
 
     @property
     def frame_size(self) -> tuple[int, int]:
-        """(height, width) of the training frames."""
-        _, h, w = self.frames[0].inputs.shape
-        return h, w
+        """(height, width) of the largest training frame (frames differ in size at the working scale)."""
+        return max(f.inputs.shape[1] for f in self.frames), max(f.inputs.shape[2] for f in self.frames)
 
     def batches(self, epoch: int, steps: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """This process's (inputs, targets) batch of each step of ``epoch``."""
         rng = np.random.default_rng([self.seed, epoch])
         for _ in range(steps):
-            x, y = random_crops(self.frames, self.crop, self.batch_size, rng)
+            x, y = random_crops(self.frames, self.crop, self.batch_size, rng, rotate=self.rotate)
             yield x[self.rows], y[self.rows]
 
 

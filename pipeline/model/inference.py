@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from pipeline.model.data import Splat
+from pipeline.model.data import InputSpec, Splat
 from pipeline.model.networks import Generator
 
 
@@ -52,18 +52,28 @@ def fluid_window(fluid: np.ndarray, margin: int, stride: int) -> tuple[int, int,
 class Refiner:
     """A generator prepared for inference: ``refiner(inputs, fluid) -> H x W x 3`` normals.
 
-    It also carries how its input is made (``auxiliary`` depth features, the ``splat`` kind), as
+    It also carries how its input is made (``spec``: depth features, splat kind, working scale), as
     recorded in the checkpoint's training config."""
 
     def __init__(self, generator: Generator, device: str | torch.device = "cpu", crop: bool = True,
-                 auxiliary: bool = True, splat: Splat = "sphere"):
-        self.auxiliary, self.splat = auxiliary, splat
+                 spec: InputSpec | None = None):
+        self.spec = spec or InputSpec()
         self.device = torch.device(device)
         self.stride = generator.stride
         self.margin = generator.receptive_radius()
         self.crop = crop
         net = fold_batch_norm(copy.deepcopy(generator).eval())
         self.net = net.to(self.device, memory_format=torch.channels_last)
+
+    @property
+    def splat(self) -> Splat:
+        """The splat kind the generator's input is made of."""
+        return self.spec.splat
+
+    @property
+    def auxiliary(self) -> bool:
+        """Whether the input carries depth features besides the normal."""
+        return self.spec.auxiliary
 
     @torch.inference_mode()
     def __call__(self, inputs: np.ndarray, fluid: np.ndarray | None = None) -> np.ndarray:
@@ -92,9 +102,7 @@ def load_refiner(path, device: str | torch.device = "cpu") -> Refiner:
     from pipeline.model.trainer import load_generator
 
     generator, meta = load_generator(path, str(device))
-    cfg = meta["config"]
-    return Refiner(generator, device, auxiliary=bool(cfg["auxiliary_features"]),
-                   splat=cfg.get("input_splat", "sphere"))
+    return Refiner(generator, device, spec=InputSpec.of(meta["config"]))
 
 
 SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "refiner.pt"

@@ -24,7 +24,7 @@ from pipeline.cache import atomic_path
 from pipeline.config import TrainConfig
 from pipeline.frames import spread
 from pipeline.model import distributed
-from pipeline.model.data import CropDataset, DiskBatches, Frame, MemoryBatches, load_frame
+from pipeline.model.data import CropDataset, DiskBatches, Frame, InputSpec, MemoryBatches, load_frame
 from pipeline.model.trainer import Refiner, seed_everything, validation_metrics
 from pipeline.plots import error_sheet, loss_curves
 
@@ -62,6 +62,10 @@ def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_
     start_epoch, best, history = load_checkpoint(refiner, last) if last.exists() else (0, math.inf, [])
     if start_epoch >= cfg.epochs:
         return best
+    if not start_epoch and cfg.init_from:
+        init_generator(refiner, cfg.init_from)
+        if main:
+            log.info("train: generator initialised from %s", cfg.init_from)
     if cfg.batch_size % world.size:
         raise TrainingError(f"train.batch_size is {cfg.batch_size}, which does not split over {world.size} "
                             f"processes; set it to a multiple of {world.size} or change --nproc_per_node")
@@ -73,8 +77,7 @@ def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_
     source = _crop_source(cfg, seed, train_paths, steps, world, refiner.device)
     val_frames: list[Frame] = []
     if main:
-        val_frames = [load_frame(p, cfg.auxiliary_features, cfg.input_splat)
-                      for p in spread(val_paths, cfg.val_frames) or train_paths[:2]]
+        val_frames = [load_frame(p, InputSpec.of(cfg)) for p in spread(val_paths, cfg.val_frames) or train_paths[:2]]
     height, width = source.frame_size
     if cfg.crop > min(height, width):
         raise TrainingError(f"train.crop is {cfg.crop} px but the dataset's images are {width}x{height}; set "
@@ -87,6 +90,7 @@ def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_
     if world.size > 1:
         refiner.distribute()
     board = _tensorboard(folder / "tensorboard") if main else None
+    began = time.perf_counter()
     for epoch in tqdm(range(start_epoch + 1, cfg.epochs + 1), desc="train", unit="epoch",
                       initial=start_epoch, total=cfg.epochs, disable=not main):
         seed_everything(seed * 100_003 + epoch)
@@ -108,23 +112,57 @@ def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_
             best = _write_epoch(folder, refiner, history, best, val_frames, preds)
             _log_epoch(board, record)
         world.barrier()  # the others wait while rank 0 validates and writes
+        if cfg.time_limit_minutes and epoch < cfg.epochs and time.perf_counter() - began > 60 * cfg.time_limit_minutes:
+            if main:
+                log.info("train: time limit of %g minutes reached after epoch %d of %d; last.pt is written and "
+                         "the next run resumes", cfg.time_limit_minutes, epoch, cfg.epochs)
+            raise TimeLimitReached(epoch)
     if main:
         loss_curves(folder / "loss_curve.png", history)
     return world.share(best)
+
+
+class TimeLimitReached(Exception):
+    """Training stopped at an epoch boundary on ``train.time_limit_minutes``; ``last.pt`` is written."""
+
+    def __init__(self, epoch: int):
+        super().__init__(f"stopped after epoch {epoch}")
+        self.epoch = epoch
+
+
+def init_generator(refiner: Refiner, source: str) -> None:
+    """Load the generator weights of ``source`` ('shipped' or a checkpoint path) into ``refiner``;
+    the checkpoint must describe the same architecture and input."""
+    from pipeline.model.inference import SHIPPED_WEIGHTS
+
+    path = SHIPPED_WEIGHTS if source == "shipped" else Path(source)
+    try:
+        state = torch.load(path, map_location=refiner.device, weights_only=True)
+    except FileNotFoundError:
+        raise TrainingError(f"train.init_from: no checkpoint at {path}") from None
+    except Exception as exc:
+        raise TrainingError(f"train.init_from: cannot read {path} ({exc})") from None
+    want = dict(refiner.generator.args)
+    got = {**{"residual": False}, **state.get("generator_args", {})}
+    if got != want:
+        raise TrainingError(f"train.init_from: {path} holds a generator {got}, but this config builds {want}; "
+                            "set the train.gen_* keys, input_features and residual to match it")
+    refiner.generator.load_state_dict(state["generator"])
 
 
 def _crop_source(cfg: TrainConfig, seed: int, paths: list[Path], steps: int, world: distributed.World,
                  device: torch.device) -> MemoryBatches | DiskBatches:
     """This process's batches: every frame decoded into memory, or crops read from disk by DataLoader workers."""
     if cfg.data == "disk":
-        dataset = CropDataset(paths, cfg.crop, seed, cfg.auxiliary_features, cfg.input_splat, cfg.cached_frames)
+        dataset = CropDataset(paths, cfg.crop, seed, InputSpec.of(cfg), cfg.cached_frames, rotate=cfg.rotations)
         return DiskBatches(dataset, steps, cfg.batch_size, cfg.loader_workers, world.rank, world.size,
                            pin_memory=device.type == "cuda")
     if world.is_main:
         log.info("train: loading %d training frames", len(paths))
-    frames = [load_frame(p, cfg.auxiliary_features, cfg.input_splat)
-              for p in tqdm(paths, desc="load", unit="frame", leave=False, disable=not world.is_main)]
-    return MemoryBatches(frames, cfg.crop, cfg.batch_size, seed, world.rank, world.size)
+    spec = InputSpec.of(cfg)
+    frames = [load_frame(p, spec) for p in tqdm(paths, desc="load", unit="frame", leave=False,
+                                                disable=not world.is_main)]
+    return MemoryBatches(frames, cfg.crop, cfg.batch_size, seed, world.rank, world.size, rotate=cfg.rotations)
 
 
 def _write_epoch(folder: Path, refiner: Refiner, history: list[dict], best: float, val_frames: list[Frame],

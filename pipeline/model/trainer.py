@@ -10,7 +10,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel
 
 from pipeline.config import TrainConfig, to_dict
-from pipeline.model.data import input_channel_count
+from pipeline.model.data import InputSpec
 from pipeline.model.losses import adversarial_loss, content_loss, normal_constraint_loss
 from pipeline.model.networks import Discriminator, Generator
 
@@ -24,8 +24,8 @@ def seed_everything(seed: int) -> None:
 
 def build_generator(cfg: TrainConfig) -> Generator:
     """The generator a training config describes."""
-    return Generator(input_channel_count(cfg.auxiliary_features), cfg.gen_base_channels, cfg.gen_downsamples,
-                     cfg.gen_res_blocks)
+    return Generator(InputSpec.of(cfg).channels, cfg.gen_base_channels, cfg.gen_downsamples, cfg.gen_res_blocks,
+                     residual=cfg.residual)
 
 
 class Refiner:

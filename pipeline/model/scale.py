@@ -1,0 +1,112 @@
+"""The working scale of the refiner: every frame is seen with particles of about the same size.
+
+A convolutional network's reach is a fixed number of pixels, so the same fluid rendered at twice the
+resolution, or seen from half the distance, would look to it like a different, blobbier fluid. The
+refiner therefore works at a scale where the median projected particle radius (``f r / d`` in
+pixels over the fluid) is at most ``working_radius_px``: larger frames are area-averaged down to it
+in half-octave steps (normals and depths averaged over the fluid part of each new pixel, a pixel
+fluid when at least half of it is) and the refined normals are interpolated back up. Frames whose
+particles are already small stay as they are. Half-octave steps keep the scale of a sequence from
+changing with every frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+def projected_radius_px(depth: np.ndarray, focal_px: float, radius: float) -> np.ndarray:
+    """The particle radius on screen (px) at each pixel of a depth map, 0 where it is empty."""
+    d = np.asarray(depth, np.float32)
+    return np.where(d > 0, focal_px * radius / np.maximum(d, 1e-12), 0.0).astype(np.float32)
+
+
+def median_radius_px(depth: np.ndarray, focal_px: float, radius: float) -> float:
+    """Median projected particle radius over the fluid pixels of a depth map (0 when none)."""
+    d = np.asarray(depth)
+    fluid = d > 0
+    return float(np.median(focal_px * radius / d[fluid])) if fluid.any() else 0.0
+
+
+def working_scale(depth: np.ndarray, focal_px: float, radius: float, working_radius_px: float) -> float:
+    """The factor (1, 2^-1/2, 1/2, ...) that brings the median projected radius to at most
+    ``working_radius_px`` (1 when it already is, when there is no fluid, or with a working radius 0)."""
+    r = median_radius_px(depth, focal_px, radius)
+    if working_radius_px <= 0 or r <= working_radius_px:
+        return 1.0
+    return 2.0 ** (-math.ceil(2.0 * math.log2(r / working_radius_px) - 1e-9) / 2.0)
+
+
+def scaled_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """Image size at ``scale`` (at least one pixel a side)."""
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def area_average(values: np.ndarray, weight: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` (C x H x W) averaged over ``weight`` (H x W, 0..1) in the pixels of an image of
+    ``size`` (h, w), and the weight's own average there (the coverage)."""
+    v = torch.from_numpy(np.ascontiguousarray(values * weight, np.float32))[None]
+    w = torch.from_numpy(np.ascontiguousarray(weight, np.float32))[None, None]
+    vs = torch.nn.functional.interpolate(v, size=size, mode="area")[0].numpy()
+    ws = torch.nn.functional.interpolate(w, size=size, mode="area")[0, 0].numpy()
+    return vs / np.maximum(ws, 1e-12), ws
+
+
+def unit(normals: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """C=3 first: normals scaled to unit length where ``keep``, zero elsewhere."""
+    length = np.linalg.norm(normals, axis=0)
+    return np.where(keep & (length > 1e-12), normals / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+
+
+@dataclass
+class ScaledView:
+    """A view's refiner channels at the working scale.
+
+    ``normals`` 3 x h x w (unit, 0 outside the fluid), ``raw`` and ``blurred`` depths (0 outside),
+    ``fluid`` mask, ``focal_px`` of the scaled image, ``scale`` against the full image (1: untouched)
+    and, when the view has one, the ``target`` normals (3 x h x w, 0 where the target is empty)."""
+
+    normals: np.ndarray
+    raw: np.ndarray
+    blurred: np.ndarray
+    fluid: np.ndarray
+    focal_px: float
+    scale: float
+    target: np.ndarray | None = None
+
+
+def scale_view(normals: np.ndarray, raw: np.ndarray, blurred: np.ndarray, focal_px: float, radius: float,
+               working_radius_px: float, target: np.ndarray | None = None) -> ScaledView:
+    """A view (normals 3 x H x W, raw and filtered depth H x W, 0 = empty) at the working scale, with
+    the target normals (3 x H x W, zero vector = empty) averaged alike."""
+    fluid = raw > 0
+    scale = working_scale(raw, focal_px, radius, working_radius_px)
+    if scale == 1.0:
+        return ScaledView(normals.astype(np.float32), raw.astype(np.float32), blurred.astype(np.float32), fluid,
+                          focal_px, 1.0, None if target is None else target.astype(np.float32))
+    h, w = raw.shape
+    size = scaled_size(h, w, scale)
+    stacked, coverage = area_average(np.concatenate([normals, raw[None], blurred[None]]), fluid, size)
+    small = coverage >= 0.5
+    out_target = None
+    if target is not None:
+        t_fluid = np.abs(target).sum(0) > 0
+        t_small, t_cov = area_average(target, t_fluid, size)
+        out_target = unit(t_small, t_cov >= 0.5)
+    depths = np.where(small, stacked[3:], 0.0).astype(np.float32)
+    return ScaledView(unit(stacked[:3], small), depths[0], depths[1], small, focal_px * size[1] / w,
+                      size[1] / w, out_target)
+
+
+def upsample_normals(normals: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """H x W x 3 normals (not renormalised, so lengths still say fluid or not) bilinearly
+    interpolated to ``size`` (h, w)."""
+    if normals.shape[:2] == tuple(size):
+        return normals
+    t = torch.from_numpy(np.ascontiguousarray(np.moveaxis(normals, -1, 0), np.float32))[None]
+    up = torch.nn.functional.interpolate(t, size=size, mode="bilinear", align_corners=False)[0]
+    return np.ascontiguousarray(up.permute(1, 2, 0).numpy())
