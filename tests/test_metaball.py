@@ -170,6 +170,35 @@ def test_a_camera_inside_a_support_marches_from_the_near_plane(launch):
     assert np.abs(wide["depth"] - narrow["depth"]).max() <= 2 * _depth_tolerance(MetaballParams(), 9.0)
 
 
+@pytest.mark.parametrize("k", [4.0, 0.0])
+def test_empty_space_skipping_finds_the_surfaces_of_the_fixed_step(launch, k):
+    """Sixty random balls: the adaptive march (safe steps where the field provably stays below the
+    iso-level) meets the same surface as the thesis' fixed step, pixel for pixel but for rays that
+    graze it, at the same depth, with the same normals, in far fewer samples."""
+    import time
+
+    rng = np.random.default_rng(4)
+    centres = np.column_stack([rng.uniform(-4, 4, 60), rng.uniform(-4, 4, 60), rng.uniform(-20, -9, 60)])
+    radii = rng.uniform(0.3, 0.9, 60)
+    cam = paper_camera(64, 64)
+    out, seconds = {}, {}
+    for adaptive in (False, True):
+        p = MetaballParams(kernel_radius_radii=k, adaptive_step=adaptive)
+        metaball_targets(centres, radii, cam, p, launch)  # compiled and warm
+        start = time.perf_counter()
+        out[adaptive] = metaball_targets(centres, radii, cam, p, launch)
+        seconds[adaptive] = time.perf_counter() - start
+    fixed, fast = out[False], out[True]
+    both = (fixed["mask"] > 0) & (fast["mask"] > 0)
+    assert fixed["mask"].mean() > 0.2
+    assert np.mean(fixed["mask"] != fast["mask"]) < 0.005
+    tol = _depth_tolerance(MetaballParams(), fixed["depth"][both])
+    assert np.all(np.abs(fixed["depth"][both] - fast["depth"][both]) <= 2 * tol + 1e-6)
+    cos = (fixed["normals"][both] * fast["normals"][both]).sum(-1)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 0.5
+    assert seconds[True] < seconds[False]
+
+
 def test_parameters_out_of_range_are_named():
     with pytest.raises(ValueError, match="depth_near"):
         MetaballParams(depth_near=30.0)

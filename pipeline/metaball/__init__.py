@@ -52,7 +52,11 @@ class MetaballParams:
     depth_far: float = 25.0
     """Farthest view depth marched and the depth that encodes as 1 (scene units)."""
     step: float = 0.01
-    """Ray-march step in view depth (scene units)."""
+    """Ray-march step in view depth (scene units): the thesis' fixed step, and the smallest one with
+    ``adaptive_step``."""
+    adaptive_step: bool = True
+    """Skip empty space: step by the distance within which the field provably stays below the
+    iso-level when that is longer than ``step`` (the same surfaces, far fewer samples)."""
     bisections: int = 8
     """Halvings of the step that holds the first crossing: depth error at most step / 2^(bisections + 1)."""
     colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
@@ -153,7 +157,8 @@ def metaball_targets(positions: np.ndarray, radii, camera: Camera, params: Metab
              wp.array(rad.astype(np.float32), dtype=float, device=device), wp.array(col, dtype=wp.vec3, device=device)]
     view = [wp.vec3(*camera.eye.astype(np.float32)), wp.mat33(*rot.ravel()), w, h, camera.focal_px]
     launch(K.march_metaballs, w * h, [*balls, float(k), reach, p.iso_level, *view, t_entry, t_exit, p.depth_near,
-                                      p.depth_far, p.step, p.bisections, *arrays.values()])
+                                      p.depth_far, p.step, int(p.adaptive_step), p.bisections,
+                                      *arrays.values()])
     for name, a in arrays.items():
         out[name] = a.numpy().reshape(out[name].shape)
     return out

@@ -27,6 +27,9 @@ from pipeline.screen.kernels import pixel_ray, ray_sphere, splat_bounds
 
 wp.set_module_options({"enable_backward": False})
 
+SAFE_STEP_CAP = wp.constant(0.25)
+"""Longest empty-space step with a cut-off, a share of the largest support radius."""
+
 
 @wp.func
 def ball_weight(v: wp.vec3, r: float, cutoff: float) -> wp.vec4:
@@ -64,6 +67,49 @@ def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(
         for j in range(centres.shape[0]):
             total += ball_weight(x - centres[j], radii[j], 0.0)
     return total
+
+
+@wp.func
+def field_and_safe_step(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
+                        cutoff_radii: float, reach: float, iso: float, x: wp.vec3) -> wp.vec2:
+    """(f, rho) at x: the field, and a distance rho within which it stays below ``iso`` (0 when f is
+    at or above it), for empty-space skipping.
+
+    Every term obeys w_i(Y) <= r_i^2 / (d_i - rho)^2 within rho of x (d_i = |x - P_i|, taper <= 1), and
+    d_i / (d_i - rho) <= 1 / (1 - beta) once rho <= beta d_min; so with S = sum r_i^2 / d_i^2 over the
+    balls that can reach that far, the field stays below S / (1 - beta)^2, which is iso for
+    beta = 1 - sqrt(S / iso). With a cut-off rho is capped at ``SAFE_STEP_CAP`` x ``reach`` (the largest
+    support), and the balls that can reach are those with d_i < R_i + that cap, all inside the query
+    radius (1 + cap) reach (a larger cap allows longer steps but makes every query dearer)."""
+    f = float(0.0)
+    bound = float(0.0)
+    d_min = float(1.0e30)
+    if cutoff_radii > 0.0:
+        cap = SAFE_STEP_CAP * reach
+        q = wp.hash_grid_query(grid, x, reach + cap)
+        j = int(0)
+        while wp.hash_grid_query_next(q, j):
+            v = x - centres[j]
+            r = radii[j]
+            d = wp.length(v)
+            if d < cutoff_radii * r + cap:
+                f += ball_weight(v, r, cutoff_radii * r)[0]
+                bound += r * r / wp.max(d * d, 1.0e-12)
+                d_min = wp.min(d_min, d)
+    else:
+        for j in range(centres.shape[0]):
+            v = x - centres[j]
+            r = radii[j]
+            d = wp.length(v)
+            f += ball_weight(v, r, 0.0)[0]
+            bound += r * r / wp.max(d * d, 1.0e-12)
+            d_min = wp.min(d_min, d)
+    if f >= iso or bound >= iso:
+        return wp.vec2(f, 0.0)
+    rho = (1.0 - wp.sqrt(bound / iso)) * d_min
+    if cutoff_radii > 0.0:
+        rho = wp.min(rho, SAFE_STEP_CAP * reach)
+    return wp.vec2(f, rho)
 
 
 @wp.func
@@ -138,6 +184,7 @@ def march_metaballs(
     t_near: float,
     t_far: float,
     step: float,
+    adaptive: int,
     bisections: int,
     depth_out: wp.array(dtype=float),
     normal_out: wp.array(dtype=wp.vec3),
@@ -148,9 +195,11 @@ def march_metaballs(
     blended colour and mask (all 0 where the ray meets no surface).
 
     The ray runs in view depth t from max(t_entry, t_near) to min(t_exit, t_far), where it enters
-    its first and leaves its last ball support, sampling every ``step``; a crossing between two samples is halved
-    ``bisections`` times and placed mid-interval. A ray that starts inside the surface (cut by the
-    near plane) hits at its start."""
+    its first and leaves its last ball support, sampling every ``step`` or, with ``adaptive``, every
+    max(step, rho) where rho is the distance within which the field provably stays below the
+    iso-level (``field_and_safe_step``: empty space is crossed in a few samples, not one per step); a
+    crossing between two samples is halved ``bisections`` times and placed mid-interval. A ray that
+    starts inside the surface (cut by the near plane) hits at its start."""
     idx = wp.tid() + offset
     depth_out[idx] = 0.0
     normal_out[idx] = wp.vec3(0.0, 0.0, 0.0)
@@ -164,11 +213,17 @@ def march_metaballs(
     col = idx - row * width
     d = cam_to_world * pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
     t_hit = float(-1.0)
-    if field_at(grid, centres, radii, cutoff_radii, reach, eye + d * t)[0] >= iso:
+    inv_len = 1.0 / wp.length(d)  # a step of dt in view depth moves the sample dt |d|
+    sample = field_and_safe_step(grid, centres, radii, cutoff_radii, reach, iso, eye + d * t)
+    if sample[0] >= iso:
         t_hit = t
     while t_hit < 0.0 and t < t_end:
-        t_next = wp.min(t + step, t_end)
-        if field_at(grid, centres, radii, cutoff_radii, reach, eye + d * t_next)[0] >= iso:
+        advance = step
+        if adaptive != 0:
+            advance = wp.max(step, sample[1] * inv_len)
+        t_next = wp.min(t + advance, t_end)
+        sample = field_and_safe_step(grid, centres, radii, cutoff_radii, reach, iso, eye + d * t_next)
+        if sample[0] >= iso:
             ta = t
             tb = t_next
             for _ in range(bisections):
