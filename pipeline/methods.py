@@ -15,7 +15,7 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
-from pipeline.evaluate.metrics import refined_mask
+from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.model.data import input_channels, prepare
 from pipeline.model.inference import Refiner
@@ -108,17 +108,31 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     The view goes to the refiner's working scale and its output back to the view's size
     (``pipeline.model.scale``); scale-free inputs need the image's focal length in pixels and the
     particle radius. Pixels whose predicted normal is shorter than ``threshold`` are dropped as
-    noise (Choi et al., section 3.3), and so are pixels without splatted fluid (there is no depth to
-    shade there).
+    noise (Choi et al., section 3.3), and so are pixels further from the splat's fluid than
+    ``REFINED_REACH_PX`` working pixels (the reference surface is wider than the splat; its depth
+    there is the nearest splat pixel's: ``extend_depth``).
     """
     names = input_channels(refiner.splat)
     fluid = channels[names.fluid] > 0
     view = prepare(channels, refiner.spec, focal_px, radius)
     n = refiner(view.inputs, view.fluid)
     n = upsample_normals(n, fluid.shape)
-    mask = refined_mask(n, fluid, threshold)
+    reach = REFINED_REACH_PX / view.scale if refiner.spec.features == "radius" else 0.0
+    mask = refined_mask(n, fluid, threshold, reach)
     length = np.linalg.norm(n, axis=-1)
     return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
+
+
+def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``depth`` (0 = empty) on ``mask``, each masked pixel without a depth of its own taking its
+    nearest depth pixel's (refined silhouettes reach past the splat); 0 off the mask."""
+    have = depth > 0
+    if not have.any():
+        return np.zeros_like(depth)
+    from scipy.ndimage import distance_transform_edt
+
+    rows, cols = distance_transform_edt(~have, return_distances=False, return_indices=True)
+    return np.where(mask, depth[rows, cols], 0.0).astype(np.float32)
 
 
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
@@ -159,7 +173,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         names = input_channels(refiner.splat)
         with t("refiner"):
             n, mask = refine(refiner, ch, threshold, camera.focal_px, radius)
-        return {"normals": n, "depth": np.where(mask, ch[names.blurred], 0.0), "mask": mask.astype(np.float32),
+        return {"normals": n, "depth": extend_depth(ch[names.blurred], mask), "mask": mask.astype(np.float32),
                 "thickness": ch[names.thickness]}
     thickness = ch["thickness"]
     if method == "mesh":

@@ -118,13 +118,19 @@ def test_refine_your_own_exrs(tmp_path, ss, launch, capsys):
         ch = screen_space_inputs(ball, r, cam, p, ss, filters=None,
                                  ellipsoids=particle_ellipsoids(ball, r, p, launch), aniso_filters=("bilateral",))
         write_exr(tmp_path / f"view_{f}.exr", ch)
-    assert cli.main(["refine", str(tmp_path / "view_{}.exr"), "--out", str(tmp_path / "out")]) == 0
     refiner = load_refiner(SHIPPED_WEIGHTS)
+    if refiner.spec.features == "radius":  # no camera or radius in these headers: the command asks for them
+        capsys.readouterr()
+        assert cli.main(["refine", str(tmp_path / "view_{}.exr"), "--out", str(tmp_path / "out")]) == 1
+        assert "--radius" in _one_line(capsys.readouterr().err)
+    assert cli.main(["refine", str(tmp_path / "view_{}.exr"), "--out", str(tmp_path / "out"), "--radius", str(r),
+                     "--fov", "40"]) == 0
     from pipeline.exr import read_exr
 
     for f in (1, 2, 10):
         got = read_exr(tmp_path / "out" / f"view_{f}.exr")
-        n, mask = refine(refiner, read_exr(tmp_path / f"view_{f}.exr"))
+        focal_px = Camera(np.eye(4), 40.0, 64, 64).focal_px
+        n, mask = refine(refiner, read_exr(tmp_path / f"view_{f}.exr"), 0.5, focal_px, r)
         np.testing.assert_allclose(stack(got, "N."), n, atol=1e-6)
         assert np.array_equal(got["mask"] > 0, mask) and mask.sum() > 40
         np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1.0, atol=1e-5)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import yaml
 
 from pipeline.exr import read_exr
@@ -27,7 +28,7 @@ def test_dataset_smoke_all_scenes(tmp_path):
     config = shrunk_default(tmp_path)
     assert cli.main(["dataset", "--config", config]) == 0
     entries = sorted((tmp_path / "data" / "dataset").iterdir())
-    assert len(entries) == 6
+    assert len(entries) == len(yaml.safe_load(open(config))["scenes"]) == 12
     for entry in entries:
         manifest = json.loads((entry / "manifest.json").read_text())
         records = manifest["frames"]
@@ -87,3 +88,41 @@ def test_imported_sequence_goes_through_the_dataset(tmp_path):
     (entry,) = (tmp_path / "data" / "dataset").iterdir()
     ch = read_exr(entry / "static" / "frame_0001.exr")
     assert ch["A"].mean() > 0.05 and ch["target.A"].mean() > 0.05
+
+
+def test_random_views_cover_the_configured_ranges_and_skip_evaluated_scenes(tmp_path):
+    """Random training views: each frame gets ``random_views`` of them, square, a multiple of 32 px
+    within the size range, their header says the camera and the particle radius, and the particles
+    project within the radius range; a held-out scene that is only evaluated gets none, the scene
+    that validates does."""
+    from pipeline.exr import read_exr_header
+    from pipeline.model.data import view_geometry
+    from pipeline.model.scale import median_radius_px
+
+    config = shrunk_default(tmp_path, random_views=3, random_size=[64, 192], random_radius_px=[1.0, 4.0],
+                            holdout_scenes=["merging", "validation_drop"], validation_camera="none")
+    body = yaml.safe_load(open(config))
+    body["scenes"] = ["splash_drops", "merging", "validation_drop"]
+    body["train"]["validation_scenes"] = ["validation_drop"]
+    open(config, "w").write(yaml.safe_dump(body))
+    assert cli.main(["dataset", "--config", config]) == 0
+    radii = []
+    for entry in sorted((tmp_path / "data" / "dataset").iterdir()):
+        records = json.loads((entry / "manifest.json").read_text())["frames"]
+        randoms = [r for r in records if r["camera"] == "random"]
+        if entry.name.startswith("merging"):
+            assert not randoms and not (entry / "random").exists()
+            continue
+        assert len(randoms) == 2 * 3 and {r["split"] for r in randoms} == {"train"}
+        for r in randoms:
+            ch = read_exr(entry / r["file"])
+            side = ch["aniso.Z"].shape[0]
+            assert ch["aniso.Z"].shape == (side, side) and side % 32 == 0 and 64 <= side <= 192
+            assert {"aniso_bilateral.N.X", "target.N.Z", "aniso.A"} <= set(ch) and "nrf.Z" not in ch
+            focal_px, radius = view_geometry(read_exr_header(entry / r["file"]))
+            assert radius == pytest.approx(0.03)
+            # the field of view is drawn from 25-65 degrees
+            assert side / 2 / np.tan(np.radians(32.5)) - 1e-3 <= focal_px <= side / 2 / np.tan(np.radians(12.5)) + 1e-3
+            if r["fluid_share"] > 0.02:
+                radii.append(median_radius_px(ch["aniso.Z"], focal_px, radius))
+    assert radii and 0.6 <= min(radii) and max(radii) <= 6.0

@@ -50,9 +50,11 @@ def test_ray_dataset_render_and_evaluate_equal_a_serial_run(tiny_dam, tmp_path):
     def metrics(root):
         (entry,) = (root / "evaluate").iterdir()
         data = json.loads((entry / "metrics.json").read_text())
-        for table in [data["overall"], *(s["methods"] for s in data["sequences"])]:
-            for row in table.values():
-                row.pop("ms_per_frame", None)  # timings differ, everything else must not
+        sized = [(d["overall"], d["sequences"]) for d in data["sizes"].values()]
+        for overall, sequences in [(data["overall"], data["sequences"]), *sized]:
+            for table in [overall, *(s["methods"] for s in sequences)]:
+                for row in table.values():
+                    row.pop("ms_per_frame", None)  # timings differ, everything else must not
         return data
 
     assert metrics(serial) == metrics(tmp_path / "ray_data")

@@ -41,3 +41,38 @@ def test_iou_of_half_overlap():
     a[:, :6] = True
     b[:, 4:] = True
     assert iou(a, b) == pytest.approx(20 / 100)
+
+
+def test_refined_pixels_may_reach_past_the_splat_by_the_reach_only():
+    """A splat disc of radius 8 px and a predicted normal map of unit vectors everywhere but for a
+    short vector inside: with a reach of 3 px the mask is the disc grown by 3 px (Euclidean), without
+    the noise pixel; with no reach it is the disc."""
+    from pipeline.evaluate.metrics import refined_mask
+
+    yy, xx = np.mgrid[0:40, 0:40]
+    dist = np.hypot(yy - 20, xx - 20)
+    fluid = dist <= 8
+    n = np.zeros((40, 40, 3))
+    n[..., 2] = 1.0
+    n[20, 20, 2] = 0.3
+    strict = refined_mask(n, fluid, 0.5)
+    assert np.array_equal(strict, fluid & (dist > 0))
+    grown = refined_mask(n, fluid, 0.5, reach_px=3)
+    ring = (dist > 8) & (dist <= 10.5)
+    assert grown[ring].all() and not grown[dist > 11.5].any() and not grown[20, 20]
+    assert grown.sum() > strict.sum()
+
+
+def test_extended_depth_copies_the_nearest_splat_depth():
+    from pipeline.methods import extend_depth
+
+    depth = np.zeros((5, 8), np.float32)
+    depth[:, :3] = 2.0
+    depth[:, 3:5] = 3.0
+    mask = np.zeros((5, 8), bool)
+    mask[:, :7] = True
+    out = extend_depth(depth, mask)
+    np.testing.assert_array_equal(out[:, :5], depth[:, :5])
+    np.testing.assert_array_equal(out[:, 5:7], 3.0)
+    assert not out[:, 7].any()
+    assert not extend_depth(np.zeros((3, 3), np.float32), np.ones((3, 3), bool)).any()

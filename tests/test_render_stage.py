@@ -114,15 +114,21 @@ def test_an_empty_particle_frame_renders_background_and_the_rest_render(tmp_path
 
 def test_evaluate_smoke(tmp_path):
     config = _config(tmp_path, _tiny_checkpoint(tmp_path))
+    body = yaml.safe_load(open(config))
+    body["evaluate"]["sizes"] = [64, 96]
+    open(config, "w").write(yaml.safe_dump(body))
     assert cli.main(["evaluate", "--config", config]) == 0
     (entry,) = (tmp_path / "data" / "evaluate").iterdir()
     report = (entry / "report.md").read_text()
+    assert "## 64 x 64" in report and "## 96 x 96" in report and "Refined against the filters" in report
     for method in ("Gaussian", "bilateral", "narrow-range", "ellipsoids", "ellipsoids + narrow-range",
                    "refined (cGAN)", "mesh (reference)"):
         assert method in report
     metrics = json.loads((entry / "metrics.json").read_text())
     # held out: both cameras of merging, the orbit of dam_break, both cameras of the imported frame
     assert len(metrics["sequences"]) == 5
+    assert set(metrics["sizes"]) == {"64", "96"} and len(metrics["sizes"]["96"]["sequences"]) == 5
+    assert {s["size"][0] for s in metrics["sizes"]["96"]["sequences"]} == {96}
     for m in ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined"):
         row = metrics["overall"][m]
         assert 0 <= row["mean_deg"] <= 180 and 0 <= row["iou"] <= 1 and row["ms_per_frame"] > 0

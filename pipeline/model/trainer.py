@@ -163,7 +163,14 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
     ``metrics.refined_mask``, as the renderer drops them). Returns the summary and the refined
     maps (for the PNG sheet).
     """
-    from pipeline.evaluate.metrics import angular_errors, iou, normal_mask, refined_mask, summarize_angles
+    from pipeline.evaluate.metrics import (
+        REFINED_REACH_PX,
+        angular_errors,
+        iou,
+        normal_mask,
+        refined_mask,
+        summarize_angles,
+    )
 
     refined_err, input_err, ious, preds = [], [], [], []
     for f in frames:
@@ -171,7 +178,7 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
         target = np.moveaxis(f.target, 0, -1)
         given = np.moveaxis(f.inputs[:3], 0, -1)
         t_mask = normal_mask(target)
-        r_mask = refined_mask(pred, f.fluid, threshold)
+        r_mask = refined_mask(pred, f.fluid, threshold, REFINED_REACH_PX)
         refined_err.append(angular_errors(pred, target, r_mask & t_mask))
         input_err.append(angular_errors(given, target, normal_mask(given) & t_mask))
         ious.append(iou(r_mask, t_mask))
