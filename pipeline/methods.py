@@ -19,7 +19,7 @@ from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.model.data import input_channels, prepare
 from pipeline.model.inference import Refiner
-from pipeline.model.scale import upsample_normals
+from pipeline.model.scale import resize_normals
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
@@ -116,7 +116,7 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     fluid = channels[names.fluid] > 0
     view = prepare(channels, refiner.spec, focal_px, radius)
     n = refiner(view.inputs, view.fluid)
-    n = upsample_normals(n, fluid.shape)
+    n = resize_normals(n, fluid.shape)
     reach = REFINED_REACH_PX / view.scale if refiner.spec.features == "radius" else 0.0
     mask = refined_mask(n, fluid, threshold, reach)
     length = np.linalg.norm(n, axis=-1)

@@ -8,7 +8,7 @@ import pytest
 from pipeline.camera import Camera, look_at
 from pipeline.config import DatasetConfig
 from pipeline.model.data import Frame, InputSpec, draw_crop, prepare, rotate_quarter
-from pipeline.model.scale import area_average, scale_view, upsample_normals, working_scale
+from pipeline.model.scale import area_average, resize_normals, scale_view, working_scale
 from pipeline.surface import particle_ellipsoids
 from pipeline.views import screen_space_inputs
 
@@ -18,10 +18,11 @@ def test_working_scale_moves_in_half_octaves_to_at_most_the_working_radius():
     assert working_scale(depth, 100.0, 0.05, 3.0) == 1.0
     assert working_scale(depth, 100.0, 0.05, 0.0) == 1.0
     assert working_scale(np.zeros((4, 4)), 100.0, 0.05, 1.0) == 1.0
-    for target in (0.3, 0.9, 1.2, 2.4):
+    for target in (0.3, 0.9, 1.2, 2.4, 4.0, 6.0, 9.0):  # down, and up for small particles
         s = working_scale(depth, 100.0, 0.05, target)
-        assert 2.5 * s <= target + 1e-6 < 2.5 * s * 2**0.5
+        assert target / 2**0.5 < 2.5 * s <= target + 1e-6
         assert abs(2 * np.log2(s) - round(2 * np.log2(s))) < 1e-9
+    assert working_scale(depth, 100.0, 0.05, 100.0) == 4.0  # at most MAX_UPSCALE
 
 
 def test_area_average_keeps_fluid_values_and_reports_coverage():
@@ -92,7 +93,7 @@ def test_scaled_target_and_upsampling_keep_a_constant_normal():
     view = scale_view(n, raw, raw, 600.0, 0.01, 1.5, target=n)  # 6 px particles to 1.5: a quarter
     assert view.scale == 0.25 and view.raw.shape == (8, 8)
     np.testing.assert_allclose(view.target[2], 1.0)
-    up = upsample_normals(np.moveaxis(view.normals, 0, -1), (32, 32))
+    up = resize_normals(np.moveaxis(view.normals, 0, -1), (32, 32))
     np.testing.assert_allclose(up[..., 2], 1.0, atol=1e-6)
 
 
@@ -122,3 +123,23 @@ def test_crops_pad_small_frames_and_turn_inputs_and_targets_alike():
         x, y = draw_crop(frame, 32, rng, flip=True, rotate=True)
         assert x.shape == (4, 32, 32) and y.shape == (3, 32, 32)
         np.testing.assert_allclose(x[:3], y, atol=1e-6)
+
+
+def test_small_particles_are_scaled_up_and_back():
+    """A disc of constant normals whose particles project to 1 px goes up by 2^1.5 to the working
+    radius of 3 px (the mask by nearest neighbour, the fluid's share kept), and its normals come back
+    down to the view's size unchanged."""
+    yy, xx = np.mgrid[0:40, 0:40]
+    disc = np.hypot(yy - 20, xx - 20) < 12
+    n = np.zeros((3, 40, 40), np.float32)
+    n[1], n[2] = 0.6 * disc, 0.8 * disc
+    raw = np.where(disc, 1.0, 0.0).astype(np.float32)
+    view = scale_view(n, raw, raw, 100.0, 0.01, 3.0, target=n)  # 100 * 0.01 / 1 = 1 px
+    assert view.scale == pytest.approx(2**1.5, rel=0.02) and view.raw.shape == (113, 113)
+    assert abs(view.fluid.mean() - disc.mean()) < 0.01
+    np.testing.assert_allclose(view.normals[1][view.fluid], 0.6, atol=1e-5)
+    np.testing.assert_allclose(view.target[2][view.fluid], 0.8, atol=1e-5)
+    np.testing.assert_allclose(view.raw[view.fluid], 1.0, atol=1e-6)
+    back = resize_normals(np.moveaxis(view.normals, 0, -1), (40, 40))
+    inner = np.hypot(yy - 20, xx - 20) < 10
+    np.testing.assert_allclose(back[inner], np.moveaxis(n, 0, -1)[inner], atol=1e-5)
