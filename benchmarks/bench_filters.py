@@ -25,7 +25,8 @@ from pipeline.evaluate.metrics import angular_errors
 from pipeline.exr import stack
 from pipeline.frames import frame_name, load_frame, spread
 from pipeline.methods import refine
-from pipeline.model.inference import SHIPPED_WEIGHTS, load_refiner
+from pipeline.model import SHIPPED_WEIGHTS
+from pipeline.model.inference import load_refiner
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.surface import reconstruct

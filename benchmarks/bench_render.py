@@ -34,8 +34,9 @@ from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
 
 from pipeline.config import DatasetConfig, RenderConfig  # noqa: E402
 from pipeline.methods import normal_source, shade_frame  # noqa: E402
+from pipeline.model import SHIPPED_WEIGHTS  # noqa: E402
 from pipeline.model.data import InputSpec, prepare  # noqa: E402
-from pipeline.model.inference import SHIPPED_WEIGHTS, Refiner  # noqa: E402
+from pipeline.model.inference import Refiner  # noqa: E402
 from pipeline.model.trainer import load_generator, predict  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.particles import read_particles  # noqa: E402

@@ -29,7 +29,8 @@ sys.path.insert(0, {root!r})
 from pipeline.camera import camera_for_frame
 from pipeline.config import load
 from pipeline.frames import load_frame
-from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
+from pipeline.model import SHIPPED_WEIGHTS
+from pipeline.model.inference import load_weights
 from pipeline.renderer import SequenceRenderer
 from pipeline.shading.background import Surroundings
 

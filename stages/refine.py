@@ -24,8 +24,9 @@ from pipeline.config import ConfigError
 from pipeline.device import choose_device
 from pipeline.exr import read_exr, read_exr_header, write_exr
 from pipeline.methods import refine
+from pipeline.model import SHIPPED_WEIGHTS
 from pipeline.model.data import input_channels, view_geometry
-from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
+from pipeline.model.inference import load_weights
 from pipeline.particles.sequence import numbered_files
 from stages.common import StageOptions
 

@@ -15,7 +15,8 @@ from pipeline import cache
 from pipeline.camera import camera_for_frame
 from pipeline.config import SceneConfig, to_dict
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
-from pipeline.model.inference import SHIPPED_WEIGHTS, load_weights
+from pipeline.model import SHIPPED_WEIGHTS
+from pipeline.model.inference import load_weights
 from pipeline.renderer import COMPARED, render_sequence
 from pipeline.shading.background import Surroundings
 from stages import simulate

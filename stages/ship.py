@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from pipeline import cache
-from pipeline.model.inference import SHIPPED_WEIGHTS as SHIPPED
+from pipeline.model import SHIPPED_WEIGHTS as SHIPPED
 from stages import train
 from stages.common import StageOptions, make_run
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from pipeline import cache
 from pipeline.config import to_dict
 from pipeline.model import distributed
-from pipeline.model.train import TimeLimitReached, fit
+from pipeline.model.train import TimeLimitReached, fit, init_path
 from stages import dataset
 from stages.common import Run, StageError, StageOptions, make_run
 
@@ -63,6 +63,9 @@ def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
     for how_not_what in ("epochs", "loader_workers", "cached_frames", "time_limit_minutes"):
         config.pop(how_not_what)
     config["seed"] = run.config.seed
+    if run.config.train.init_from:  # a fine-tune depends on the weights it starts from
+        start = init_path(run.config.train.init_from)
+        config["init_from_weights"] = cache.file_hash(start) if start.exists() else "missing"
     config["holdout_scenes"] = list(run.config.dataset.holdout_scenes)
     name = Path(run.loaded.path).stem
     return cache.entry(run.data_dir, "train", name, config, dataset_keys, run.device)

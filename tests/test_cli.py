@@ -105,7 +105,8 @@ def test_refine_your_own_exrs(tmp_path, ss, launch, capsys):
     from pipeline.config import DatasetConfig
     from pipeline.exr import stack, write_exr
     from pipeline.methods import refine
-    from pipeline.model.inference import SHIPPED_WEIGHTS, load_refiner
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.inference import load_refiner
     from pipeline.surface import particle_ellipsoids
     from pipeline.views import screen_space_inputs
 

@@ -78,7 +78,7 @@ def _ball_frames(size: int = 64):
         cam = Camera(look_at((0.0, 0.1, 0.6), (0, 0, 0)), 40.0, size, size)
         ch = screen_space_inputs(pts.astype(np.float32), r, cam, p, ss, filters=("bilateral",))
         ch.update(target_channels(reconstruct(pts.astype(np.float32), r, p, launch), cam, launch))
-        view = prepare(ch, InputSpec(True, "sphere"), cam.focal_px, r, with_target=True)
+        view = prepare(ch, InputSpec(True, "sphere", "radius", 0.0), cam.focal_px, r, with_target=True)  # 64 px
         frames.append((view.inputs, view.target))
     ss.close()
     launch.close()
@@ -158,11 +158,11 @@ def test_a_crop_larger_than_the_images_is_an_error(tmp_path, capsys):
 
     config = _tiny_train_config(tmp_path, "crop")
     body = yaml.safe_load(open(config))
-    body["train"]["crop"] = 96  # the tiny dataset is 64 x 64
+    body["train"]["crop"] = 512  # the tiny dataset is 64 x 64, about 180 x 180 at the working scale
     open(config, "w").write(yaml.safe_dump(body))
     assert cli.main(["train", "--config", config]) == 1
     err = capsys.readouterr().err
-    assert "train.crop is 96 px but the dataset's images are 64x64" in err
+    assert "train.crop is 512 px but the dataset's views are at most" in err and "at the working scale" in err
 
 
 def test_a_time_limit_stops_at_an_epoch_and_the_next_run_continues(tmp_path):

@@ -13,8 +13,8 @@ from pipeline.camera import camera_for_frame
 from pipeline.config import load
 from pipeline.evaluate.metrics import angular_errors, normal_mask
 from pipeline.methods import refine
+from pipeline.model import SHIPPED_WEIGHTS as SHIPPED
 from pipeline.model.data import input_channels
-from pipeline.model.inference import SHIPPED_WEIGHTS as SHIPPED
 from pipeline.model.inference import load_refiner
 from pipeline.model.trainer import load_generator
 from pipeline.parallel import Launcher

@@ -105,8 +105,6 @@ def load_refiner(path, device: str | torch.device = "cpu") -> Refiner:
     return Refiner(generator, device, spec=InputSpec.of(meta["config"]))
 
 
-SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "refiner.pt"
-"""The generator shipped in the package (``make ship`` replaces it in place)."""
 
 
 def load_weights(path: Path, device: str | torch.device = "cpu") -> tuple[Refiner, str]:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from pipeline.cache import atomic_path
 from pipeline.config import TrainConfig
 from pipeline.frames import spread
-from pipeline.model import distributed
+from pipeline.model import SHIPPED_WEIGHTS, distributed
 from pipeline.model.data import CropDataset, DiskBatches, Frame, InputSpec, MemoryBatches, held_window, load_frame
 from pipeline.model.trainer import Refiner, seed_everything, validation_metrics
 from pipeline.plots import error_sheet, loss_curves
@@ -84,9 +84,9 @@ def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_
         val_frames = [load_frame(p, InputSpec.of(cfg)) for p in spread(val_paths, cfg.val_frames) or train_paths[:2]]
     height, width = source.frame_size
     if cfg.crop > min(height, width):
-        raise TrainingError(f"train.crop is {cfg.crop} px but the dataset's images are {width}x{height}; set "
-                            f"train.crop to at most {min(height, width)} or render a larger dataset "
-                            "(dataset.width/height)")
+        raise TrainingError(f"train.crop is {cfg.crop} px but the dataset's views are at most {width}x{height} at "
+                            f"the working scale; set train.crop to at most {min(height, width)} or render a larger "
+                            "dataset (dataset.width/height)")
     if main:
         log.info("train: generator %.2f M parameters, %d steps/epoch of %d crops of %d px on %s (%s data, "
                  "%d process%s)", sum(p.numel() for p in refiner.generator.parameters()) / 1e6, steps,
@@ -134,12 +134,15 @@ class TimeLimitReached(Exception):
         self.epoch = epoch
 
 
+def init_path(source: str) -> Path:
+    """The checkpoint ``train.init_from`` names: the shipped weights or a path."""
+    return SHIPPED_WEIGHTS if source == "shipped" else Path(source)
+
+
 def init_generator(refiner: Refiner, source: str) -> None:
     """Load the generator weights of ``source`` ('shipped' or a checkpoint path) into ``refiner``;
     the checkpoint must describe the same architecture and input."""
-    from pipeline.model.inference import SHIPPED_WEIGHTS
-
-    path = SHIPPED_WEIGHTS if source == "shipped" else Path(source)
+    path = init_path(source)
     try:
         state = torch.load(path, map_location=refiner.device, weights_only=True)
     except FileNotFoundError:
