@@ -23,8 +23,9 @@ log = logging.getLogger("deep_ssfr")
 
 
 def scene_params(run: Run, scene: SceneConfig) -> DatasetConfig:
-    """The dataset parameters of a scene: random training views only for scenes that train or
-    validate (a held-out scene that is only evaluated gets its two camera paths)."""
+    """The dataset parameters of a scene: random training views only for simulated scenes that train
+    or validate; a held-out scene that is only evaluated, and an imported sequence, get their two
+    camera paths (the recipe the shipped weights were trained with)."""
     p, t = run.config.dataset, run.config.train
     evaluated_only = scene.name in p.holdout_scenes and scene.name not in t.validation_scenes
     return dataclasses.replace(p, random_views=0) if evaluated_only or scene.source else p
