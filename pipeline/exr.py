@@ -74,6 +74,17 @@ def camera_attributes(camera: Camera, fps: float | None = None, sensor_width_mm:
     return attrs
 
 
+def header_focal_px(header: dict) -> float | None:
+    """The focal length in pixels of a frame whose header has ``camera_attributes``' lens (the inverse
+    of ``pinholeFocalLength`` on a sensor spanning the image's longer side); None without them."""
+    focal_mm, sensor = header.get("pinholeFocalLength"), header.get("sensorOverallDimensions")
+    window = header.get("dataWindow")
+    if focal_mm is None or sensor is None or window is None:
+        return None
+    (x0, y0), (x1, y1) = (np.asarray(v).ravel() for v in window)
+    return float(focal_mm) * max(x1 - x0 + 1, y1 - y0 + 1) / float(max(sensor))
+
+
 def write_exr(path: str | Path, channels: dict[str, np.ndarray], half: tuple[str, ...] = (),
               compression: str = "zip", attributes: dict | None = None) -> None:
     """Write H x W arrays as float32 channels (float16 for names in ``half``) with ``compression``

@@ -65,9 +65,9 @@ def main(opts: StageOptions) -> None:
     run = runs[0]
     methods = tuple(run.config.evaluate.methods)
     refiner, weights = render.load_refiner(run) if "refined" in methods else (None, "")
-    seqs = {r.config.dataset.width: sequences(r) for r in runs}
-    keys = {f"{size}/{s.scene.name}/{s.camera}": dataset.ensure(r, s.scene).key
-            for r, (size, group) in zip(runs, seqs.items(), strict=True) for s in group}
+    groups = [(r, sequences(r)) for r in runs]
+    keys = {f"{r.config.dataset.width}/{s.scene.name}/{s.camera}": dataset.ensure(r, s.scene).key
+            for r, group in groups for s in group}
     entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
                         {"evaluate": to_dict(run.config.evaluate), "render": to_dict(run.config.render)},
                         {**keys, "weights": weights}, run.device)
@@ -76,8 +76,8 @@ def main(opts: StageOptions) -> None:
         return
     start = time.perf_counter()
     by_size = {}
-    for r, (size, group) in zip(runs, seqs.items(), strict=True):
-        cfg, device = r.config, r.device  # a Ray task carries these, not the run
+    for r, group in groups:
+        size, cfg, device = r.config.dataset.width, r.config, r.device  # a Ray task carries these, not the run
         results = run_tasks(lambda s, cfg=cfg, device=device: evaluate_sequence(s, cfg, refiner, methods, device),
                             group, cfg.executor, cfg.ray_address)
         by_size[size] = (results, aggregate(results, methods))

@@ -105,3 +105,14 @@ def test_openimageio_reads_names_values_and_camera(tmp_path):
     assert sorted(spec.channelnames) == sorted(names)
     np.testing.assert_allclose(np.asarray(spec.getattribute("worldToCamera")).reshape(4, 4),
                                (np.diag([1.0, 1.0, -1.0, 1.0]) @ cam.view).T, atol=1e-6)
+
+
+def test_the_focal_length_in_pixels_comes_back_from_the_header(tmp_path):
+    from pipeline.camera import Camera, look_at
+    from pipeline.exr import camera_attributes, header_focal_px, read_exr_header, write_exr
+
+    for w, h in ((64, 40), (30, 50)):
+        cam = Camera(look_at((0, 1, 3), (0, 0, 0)), 35.0, w, h)
+        write_exr(tmp_path / "f.exr", {"Z": np.zeros((h, w), np.float32)}, attributes=camera_attributes(cam))
+        assert header_focal_px(read_exr_header(tmp_path / "f.exr")) == pytest.approx(cam.focal_px, rel=1e-5)
+    assert header_focal_px({}) is None

@@ -22,6 +22,7 @@ from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, spread
 from pipeline.methods import extend_depth, method_maps, normal_source, refine, shade_frame
 from pipeline.model.data import input_channels
+from pipeline.model.scale import median_radius_px
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, tonemap
@@ -62,11 +63,12 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     shader = Shader(warp_device(device))
     background = BackgroundRenderer(Surroundings.of_scene(seq.scene), rp, width, height)
     scores = {k: {m: [] for m in methods} for k in ("errors", "per_frame", "iou", "psnr", "ssim")}
-    examples = []
+    examples, radii = [], []
     try:
         for r in tqdm(records, desc=f"evaluate {seq.scene.name}/{seq.camera}", unit="frame", leave=False):
             ch = read_exr(seq.dataset_dir / r["file"])
             cam = camera_for_frame(seq.scene.cameras, seq.camera, r["index"], len(seq.records), width, height)
+            radii.append(median_radius_px(ch["Z"], cam.focal_px, seq.particle_radius))
             bg, bg_depth = background.render(cam)
             bg = shader.fill_sky(bg, bg_depth, cam, rp)
             target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
@@ -97,19 +99,7 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     result = {m: _summary(m, scores, timings) for m in methods}
     result["mesh"] = {"ms_per_frame": timings["mesh"]}
     return {"scene": seq.scene.name, "camera": seq.camera, "frames": len(records), "size": [width, height],
-            "radius_px": _median_radius(seq, records, width, height), "methods": result, "examples": examples}
-
-
-def _median_radius(seq: HeldOut, records: list[dict], width: int, height: int) -> float:
-    """Median projected particle radius (px) over the sequence's evaluated frames."""
-    from pipeline.model.scale import median_radius_px
-
-    radii = []
-    for r in records[:: max(1, len(records) // 4)]:
-        cam = camera_for_frame(seq.scene.cameras, seq.camera, r["index"], len(seq.records), width, height)
-        raw = read_exr(seq.dataset_dir / r["file"], ["Z"])["Z"]
-        radii.append(median_radius_px(raw, cam.focal_px, seq.particle_radius))
-    return float(np.median(radii)) if radii else 0.0
+            "radius_px": float(np.median(radii)) if radii else 0.0, "methods": result, "examples": examples}
 
 
 def _summary(m: str, scores: dict, timings: dict) -> dict:

@@ -28,8 +28,8 @@ import torch
 import torch.utils.data
 
 from pipeline.cache import CacheError
-from pipeline.exr import read_exr, read_exr_header
-from pipeline.model.scale import ScaledView, projected_radius_px, scale_view
+from pipeline.exr import header_focal_px, read_exr, read_exr_header
+from pipeline.model.scale import ScaledView, median_radius_px, projected_radius_px, scale_view
 
 Splat = Literal["sphere", "ellipsoid"]
 TARGET = ["target.N.X", "target.N.Y", "target.N.Z"]
@@ -110,8 +110,7 @@ def depth_features(raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray, foca
     m = fluid.astype(np.float32)
     bumps = np.clip((raw - blurred) / radius, -BUMP_CLIP_RADII, BUMP_CLIP_RADII)
     r_px = projected_radius_px(raw, focal_px, radius)
-    median = float(np.median(r_px[fluid])) if fluid.any() else 1.0
-    size = 2 * max(1, round(RELIEF_WINDOW_RADII * median)) + 1
+    size = 2 * max(1, round(RELIEF_WINDOW_RADII * (median_radius_px(raw, focal_px, radius) or 1.0))) + 1
     local = uniform_filter(blurred * m, size, mode="constant") / np.maximum(uniform_filter(m, size, mode="constant"),
                                                                              1e-6)
     relief = np.tanh((blurred - local) / (RELIEF_SCALE_RADII * radius))
@@ -168,15 +167,9 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
 
 def view_geometry(header: dict) -> tuple[float | None, float | None]:
     """(focal length in pixels, particle radius) from a dataset view's EXR header (None for what it
-    lacks): the pinhole focal length and sensor size give the pixels, ``particleRadius`` the radius."""
+    lacks): the camera's standard attributes give the pixels, ``particleRadius`` the radius."""
     radius = header.get("particleRadius")
-    focal_mm, sensor = header.get("pinholeFocalLength"), header.get("sensorOverallDimensions")
-    window = header.get("dataWindow")
-    focal_px = None
-    if focal_mm is not None and sensor is not None and window is not None:
-        (x0, y0), (x1, y1) = (np.asarray(v).ravel() for v in window)
-        focal_px = float(focal_mm) * max(x1 - x0 + 1, y1 - y0 + 1) / float(max(sensor))
-    return focal_px, None if radius is None else float(radius)
+    return header_focal_px(header), None if radius is None else float(radius)
 
 
 @dataclass
@@ -189,6 +182,11 @@ class Frame:
     fluid: np.ndarray    # H x W bool: pixels the input splat shows as fluid
 
 
+def window_start(centre: int, side: int, extent: int) -> int:
+    """First row (or column) of a window of ``side`` centred on ``centre``, kept inside ``extent``."""
+    return int(np.clip(centre - side // 2, 0, max(0, extent - side)))
+
+
 def held_window(frame: Frame, side: int, rng: np.random.Generator) -> Frame:
     """The frame as memory training holds it: inputs and target in float16 and, when it is larger
     than ``side`` a side, only the ``side`` x ``side`` window around a random pixel of the target's
@@ -198,7 +196,7 @@ def held_window(frame: Frame, side: int, rng: np.random.Generator) -> Frame:
     if h > side or w > side:
         fluid = np.flatnonzero(np.abs(frame.target).sum(0) > 0)
         cy, cx = divmod(int(fluid[int(rng.integers(len(fluid)))]), w) if len(fluid) else (h // 2, w // 2)
-        y0, x0 = int(np.clip(cy - side // 2, 0, max(0, h - side))), int(np.clip(cx - side // 2, 0, max(0, w - side)))
+        y0, x0 = window_start(cy, side, h), window_start(cx, side, w)
     cut = (slice(None), slice(y0, y0 + side), slice(x0, x0 + side))
     return Frame(frame.inputs[cut].astype(np.float16), frame.target[cut].astype(np.float16), frame.name,
                  frame.fluid[cut[1:]])
@@ -256,8 +254,7 @@ def draw_crop(frame: Frame, crop: int, rng: np.random.Generator, flip: bool = Tr
     fluid = np.flatnonzero(np.abs(target).sum(0) > 0)
     if len(fluid) and rng.random() < 0.9:
         cy, cx = divmod(int(fluid[int(rng.integers(len(fluid)))]), w)
-        y0 = int(np.clip(cy - crop // 2, 0, h - crop))
-        x0 = int(np.clip(cx - crop // 2, 0, w - crop))
+        y0, x0 = window_start(cy, crop, h), window_start(cx, crop, w)
     else:
         y0, x0 = int(rng.integers(h - crop + 1)), int(rng.integers(w - crop + 1))
     x = inputs[:, y0:y0 + crop, x0:x0 + crop]
