@@ -14,7 +14,8 @@ STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup test lint demo simulate dataset train train-ddp ship render evaluate export bench cache-ls clean-cache
+.PHONY: setup test lint demo simulate dataset train train-ddp ship render evaluate metaball-dataset metaball-train \
+	metaball-ship export bench cache-ls clean-cache
 
 setup: $(VENV)/.installed
 
@@ -42,8 +43,11 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 # every stage is a command of the deep-ssfr console script (deep-ssfr --help)
-simulate dataset train ship render evaluate demo: setup
+simulate dataset train ship render evaluate demo metaball-dataset metaball-train: setup
 	$(CLI) $@ $(STAGE_ARGS)
+
+metaball-ship: setup
+	$(CLI) metaball-ship --config $(CONFIG) $(if $(FORCE),--force) $(if $(VERIFY),--verify)
 
 export: setup
 	$(CLI) export $(STAGE_ARGS) --format $(FORMAT)

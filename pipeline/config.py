@@ -35,9 +35,10 @@ _RULES = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 Vec3 = tuple[float, float, float]
-Method = Literal["gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "mesh"]
+Method = Literal["gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "metaball", "mesh"]
 """The normal-map methods (``pipeline.methods``): screen-space filters of sphere splats, ellipsoid
-splats with and without the narrow-range filter, the cGAN refiner, and the reference mesh."""
+splats with and without the narrow-range filter, the cGAN refiner, the image-space metaballs of
+the pix2pix network (``pipeline.metaball``), and the reference mesh."""
 METHODS: tuple[str, ...] = typing.get_args(Method)
 
 
@@ -481,15 +482,15 @@ class RenderConfig:
     sensor_width_mm: float = Field(36.0, gt=0.0)
     """Sensor width (mm, spanning the image's longer side) of the focal length in the EXR header."""
     comparison: bool = True
-    """Also write the side-by-side comparison (bilateral | nrf | refined | mesh)."""
+    """Also write the side-by-side comparison (bilateral | nrf | refined | metaball | mesh)."""
 
 
 @dataclass(frozen=True, config=_RULES)
 class EvaluateConfig:
     """Held-out metrics (the evaluate stage)."""
 
-    methods: tuple[str, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined")
-    """Methods compared with the mesh reference."""
+    methods: tuple[Method, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined")
+    """Methods compared with the mesh reference ('metaball' also against its own ray-marched surface)."""
     frames_per_sequence: int = Field(0, ge=0)
     """Frames evaluated per held-out sequence, evenly spread over it (0: all)."""
     imported_scenes: tuple[str, ...] = ()
@@ -497,6 +498,85 @@ class EvaluateConfig:
     sizes: tuple[int, ...] = ()
     """Square image sides (px) to evaluate at, each from its own dataset views (empty: the
     dataset's width and height); the report has a table per size."""
+
+
+@dataclass(frozen=True, config=_RULES)
+class MetaballConfig:
+    """Image-space metaballs (Horvath 2019; docs/metaball.md): the field fluid particles make as
+    metaballs, the dataset of circle inputs and ray-marched targets, and the pix2pix training.
+
+    A view is scaled about its camera (which leaves the image unchanged) so that every ball has the
+    radius ``working_ball_radius``; its depth code starts ``depth_margin`` in front of the nearest
+    ball centre and spans ``depth_span`` (the thesis' 7 to 25 units). Lengths below are in those
+    working units unless they say radii."""
+
+    ball_radius_radii: float = Field(1.0, gt=0.0)
+    """A particle's metaball radius in particle radii (an isolated ball's surface has radius
+    ball radius / sqrt(iso_level))."""
+    iso_level: float = Field(1.0, gt=0.0)
+    """Iso-level of the surface sum r^2 / d^2 = iso_level (the thesis' 1)."""
+    kernel_radius_radii: float = Field(4.0, ge=0.0)
+    """Where each ball's term tapers to zero, in ball radii (0: the thesis' infinite support)."""
+    working_ball_radius: float = Field(0.1, gt=0.0)
+    """Ball radius every view is scaled to (working units)."""
+    depth_margin: float = Field(0.5, ge=0.0)
+    """Depth code 0 lies this far in front of the nearest ball centre (working units)."""
+    depth_span: float = Field(18.0, gt=0.0)
+    """Depth code 1 lies this far behind code 0 (working units; the thesis' 25 - 7)."""
+    step: float = Field(0.005, gt=0.0)
+    """Smallest ray-march step near the surface (working units; half-radius / 10 by default)."""
+    bisections: int = Field(8, ge=0)
+    """Halvings of the step that brackets the surface."""
+    outline_width: float = Field(0.05, gt=0.0, le=0.5)
+    """Outline width in the circle input, a share of the circle's diameter (the thesis' 0.05)."""
+    outline_min_px: float = Field(1.0, ge=0.0)
+    """Narrowest outline (px), so that small circles still show."""
+    size: int = Field(256, ge=256, multiple_of=256)
+    """Square side (px) of the training views (the U-Net takes multiples of 256)."""
+    frame_stride: int = Field(4, ge=1)
+    """Every n-th simulated frame of a training scene gives views."""
+    max_frames: int = Field(0, ge=0)
+    """At most this many frames per scene (0: all)."""
+    views_per_frame: int = Field(2, ge=0)
+    """Random cameras per frame (``dataset.random_radius_px``, ``random_fov_deg`` and
+    ``random_elevation_deg`` ranges)."""
+    random_sets: int = Field(0, ge=0)
+    """Random ball sets as in the thesis (up to ``max_balls`` balls of random size and colour in front
+    of the camera, each rendered ``repeats`` times with small offsets), besides the fluid views."""
+    repeats: int = Field(3, ge=1)
+    """Renderings of each random set."""
+    max_balls: int = Field(145, ge=1)
+    """Most balls in a random set (the thesis' 145)."""
+    seed: int = 0
+    """Seed of the random cameras and ball sets."""
+    base_channels: int = Field(16, ge=4)
+    """U-Net width (16: 3.4 M parameters, 13.6 MB; the thesis' 32 is over the 20 MB limit)."""
+    upsample: Literal["transpose", "resize"] = "transpose"
+    """Decoder up-sampling: the thesis' transposed convolutions or resize and convolve."""
+    disc_base_channels: int = Field(32, ge=4)
+    """PatchGAN width (the thesis' 64)."""
+    disc_kernel: int = Field(4, ge=2)
+    """PatchGAN kernel (the thesis' 8; 4 is pix2pix's and 6x cheaper on a CPU)."""
+    gan_weight: float = Field(1.0, ge=0.0)
+    """Weight of the adversarial term (the thesis states 500 with L1 0.5; pix2pix uses 1 with 100)."""
+    l1_weight: float = Field(100.0, ge=0.0)
+    """Weight of the L1 term."""
+    learning_rate: float = Field(2e-4, gt=0.0)
+    """Adam learning rate of both networks (the thesis' 0.0002)."""
+    beta1: float = Field(0.5, ge=0.0, lt=1.0)
+    """Adam beta1 (the thesis' 0.5)."""
+    batch_size: int = Field(4, ge=2)
+    """Views per step (at least 2: batch norm)."""
+    epochs: int = Field(10, ge=1)
+    """Passes over the training views; more continue a finished run."""
+    time_limit_minutes: float = Field(0.0, ge=0.0)
+    """Stop after the epoch that passes this much training time (0: none); the next run resumes."""
+    weights: str = "shipped"
+    """Generator for render and evaluate: 'shipped', 'trained' (this config's, training it if needed)
+    or a checkpoint path."""
+    target_stride: int = Field(4, ge=1)
+    """Evaluate compares the metaball method with its own ray-marched target on every n-th frame it
+    evaluates (the march costs seconds a view at 1024 px on a CPU)."""
 
 
 @dataclass(frozen=True, config=_RULES)
@@ -528,6 +608,8 @@ class Config:
     """Stage 4."""
     evaluate: EvaluateConfig = Field(default_factory=EvaluateConfig)
     """Metrics."""
+    metaball: MetaballConfig = Field(default_factory=MetaballConfig)
+    """Image-space metaballs (the second method)."""
 
 
 # ---------------------------------------------------------------------------------------------

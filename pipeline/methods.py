@@ -1,7 +1,8 @@
 """One frame from particles to a shaded image, with any normal-map method.
 
 Methods: ``refined`` (bilateral screen-space input through the generator, pixels whose predicted
-normal is shorter than a threshold dropped), ``gaussian``, ``bilateral``, ``nrf`` (screen-space
+normal is shorter than a threshold dropped), ``metaball`` (the particles as circles through the
+pix2pix generator of ``pipeline.metaball``, Horvath 2019), ``gaussian``, ``bilateral``, ``nrf`` (screen-space
 filters of sphere splats), ``aniso`` and ``aniso_nrf`` (the particles splatted as their
 anisotropic ellipsoids, normals of that depth unfiltered or after the narrow-range filter) and
 ``mesh`` (the anisotropic marching-cubes surface, the reference).
@@ -17,6 +18,7 @@ from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
 from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
+from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import input_channels, prepare
 from pipeline.model.inference import Refiner
 from pipeline.model.scale import resize_normals
@@ -29,7 +31,8 @@ from pipeline.views import raytraced_target_channels, screen_space_inputs, targe
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
 NAMES = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "aniso": "ellipsoids",
-         "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)", "mesh": "mesh (reference)"}
+         "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)", "metaball": "metaballs (pix2pix)",
+         "mesh": "mesh (reference)"}
 """How each method is called in reports, comparison titles and figures."""
 
 
@@ -137,7 +140,8 @@ def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
                   ss: ScreenSpace, launch: Launcher, refiner: Refiner | None = None, threshold: float = 0.5,
-                  timings: Timings | None = None, frame_cache: dict | None = None) -> dict[str, np.ndarray]:
+                  timings: Timings | None = None, frame_cache: dict | None = None,
+                  metaball: MetaballNet | None = None) -> dict[str, np.ndarray]:
     """Normals, depth, mask and thickness of a method for one view.
 
     ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
@@ -148,6 +152,14 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
     if method == "refined" and refiner is None:
         raise ValueError("the refined method needs a generator")
+    if method == "metaball":
+        if metaball is None:
+            raise ValueError("the metaball method needs a metaball generator")
+        with t("inputs"):  # the spheres' thickness, for the shader's absorption
+            thickness = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=())["thickness"]
+        with t("metaball"):
+            g = metaball.gbuffers(positions, radius, camera, launch)
+        return {"normals": g["normals"], "depth": g["depth"], "mask": g["mask"], "thickness": thickness}
     cache = frame_cache if frame_cache is not None else {}
 
     def kernels():

@@ -76,6 +76,27 @@ def loss_curves(path: Path, history: list[dict]) -> None:
     _save(fig, path)
 
 
+def metaball_curves(path: Path, history: list[dict]) -> None:
+    """The metaball pair's losses and validation normal error per epoch."""
+    if not history:
+        return
+    epochs = [h["epoch"] for h in history]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    for key in ("loss_d", "loss_gan", "loss_l1"):
+        a.plot(epochs, [h[key] for h in history], label=key.replace("loss_", ""))
+    a.set_yscale("log")
+    a.set_xlabel("epoch")
+    a.set_title("training losses")
+    a.legend()
+    b.plot(epochs, [h["val"]["mean_deg"] for h in history], label="mean")
+    b.plot(epochs, [h["val"]["median_deg"] for h in history], label="median", ls="--")
+    b.set_xlabel("epoch")
+    b.set_ylabel("angular error (deg)")
+    b.set_title("validation normals vs the ray-marched metaballs")
+    b.legend()
+    _save(fig, path)
+
+
 def evaluation_figures(folder: Path, results: list[dict], table: dict, methods) -> None:
     """methods.png (mean error and share under 10 degrees), frames.png (error over frames per
     sequence) and examples.png (normal maps and error maps of a few held-out frames)."""

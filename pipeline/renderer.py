@@ -4,7 +4,7 @@ Into one folder: ``frames/frame_0001.exr`` (the passes of ``methods.RenderedFram
 ``ViewLayer.<Pass>.<Channel>``, the camera in the header: docs/compositing.md),
 ``preview/frame_0001.png``, ``<name>_<method>.mp4`` and, with ``render.comparison``,
 ``compare/frame_0001.png``, ``<name>_comparison.mp4`` and ``<name>_comparison_sheet.png``
-(bilateral | narrow-range | refined | mesh). A frame counts as done when all its files exist, so
+(bilateral | narrow-range | refined | metaballs | mesh). A frame counts as done when all its files exist, so
 a killed run resumes after the last whole frame. Used by the render stage and the CLI.
 """
 
@@ -33,20 +33,23 @@ from pipeline.timing import Timings
 from pipeline.writer import BackgroundWriter
 
 log = logging.getLogger("deep_ssfr")
-COMPARED = ("bilateral", "nrf", "refined", "mesh")
+COMPARED = ("bilateral", "nrf", "refined", "metaball", "mesh")
 
 
 class SequenceRenderer:
     """Renders the frames of one sequence with ``render.method`` (and the compared methods) into
     ``folder``, timing each step; ``close()`` (or ``with``) releases the device buffers."""
 
-    def __init__(self, folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner=None):
+    def __init__(self, folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner=None,
+                 metaball=None):
         self.folder, self.name, self.config = Path(folder), name, config
         p = config.render
         self.methods = [p.method] + [m for m in COMPARED if p.comparison and m != p.method]
         if "refined" in self.methods and refiner is None:
             raise ValueError("the refined method needs a generator")
-        self.refiner = refiner
+        if "metaball" in self.methods and metaball is None:
+            raise ValueError("the metaball method needs a metaball generator")
+        self.refiner, self.metaball = refiner, metaball
         wdev = warp_device(device)
         self.ss, self.launch = ScreenSpace(wdev), Launcher(wdev)
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
@@ -76,7 +79,7 @@ class SequenceRenderer:
         for method in self.methods:
             t = self.timings if method == p.method else Timings()
             src = normal_source(method, positions, radius, camera, self.config.dataset, self.ss, self.launch,
-                                self.refiner, p.normal_threshold, t, frame_cache)
+                                self.refiner, p.normal_threshold, t, frame_cache, self.metaball)
             shaded[method] = shade_frame(src, bg, bg_depth, camera, p, self.shader, t)
         return shaded
 
@@ -176,12 +179,13 @@ def write_videos(folder: Path, name: str, frames: list[int], p: RenderConfig) ->
 
 def render_sequence(folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner,
                     frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
-                    camera_at: Callable[[int], Camera], fps: float | None = None) -> tuple[list[str], Timings]:
+                    camera_at: Callable[[int], Camera], fps: float | None = None,
+                    metaball=None) -> tuple[list[str], Timings]:
     """Render a sequence into ``folder`` here, or with ``config.executor='ray'`` as one shard of
     frames per CPU of the Ray cluster (each task its own renderer; the videos are made here once
     all frames are back). Returns the sequence's files and the timings."""
     def shard(subset: list[int] | None) -> tuple[list[str], Timings]:
-        with SequenceRenderer(folder, name, around, config, device, refiner) as renderer:
+        with SequenceRenderer(folder, name, around, config, device, refiner, metaball) as renderer:
             files = renderer.render(frames, load, radius, camera_at, fps, subset, videos=subset is None)
         return files, renderer.timings
 

@@ -24,6 +24,8 @@ STAGES = {
     "dataset": "Screen-space inputs and reference targets of every frame and camera, as EXR.",
     "train": "Train the refiner on the cached dataset (resumes; more epochs continue a run).",
     "evaluate": "Every method against the reference surface on held-out sequences: report.md and figures.",
+    "metaball-dataset": "Circle inputs and ray-marched metaball G-buffers of the training scenes, as EXR.",
+    "metaball-train": "Train the image-space metaball pix2pix network (resumes; more epochs continue a run).",
     "demo": "The whole job on the small default: simulate, refine with the shipped weights, shade, write.",
 }
 
@@ -31,7 +33,7 @@ STAGES = {
 def _run(stage: str, opts: StageOptions, *extra, module: str = "") -> None:
     """Run ``stages.<stage>`` (or ``module``) at the error boundary: its ``main(opts, *extra)``, else
     its ``ensure`` for every configured scene; exit with the stage's code when it failed."""
-    module = importlib.import_module(module or f"stages.{stage}")
+    module = importlib.import_module(module or f"stages.{stage.replace('-', '_')}")
 
     def each_scene() -> None:
         run = make_run(opts)
@@ -60,6 +62,14 @@ def ship(config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = Fals
          out: Annotated[str, typer.Option(help="write the weights, card and curve here, not over the shipped")] = ""):
     """Make the config's best trained checkpoint the shipped weights, with its card."""
     _run("ship", StageOptions(config, scene, force, verify), out)
+
+
+@app.command("metaball-ship")
+def metaball_ship(config: Config = DEFAULT_CONFIG, force: Force = False, verify: Verify = False,
+                  out: Annotated[str, typer.Option(help="write the weights, card and curve here, not over the "
+                                                        "shipped")] = ""):
+    """Make the config's best trained metaball generator the shipped one, with its card."""
+    _run("metaball-ship", StageOptions(config, "", force, verify), out)
 
 
 @app.command()

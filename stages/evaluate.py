@@ -64,13 +64,15 @@ def main(opts: StageOptions) -> None:
     runs = sized_runs(opts)
     run = runs[0]
     methods = tuple(run.config.evaluate.methods)
-    refiner, weights = render.load_refiner(run) if "refined" in methods else (None, "")
+    refiner, metaball, weights = render.networks(run, methods)
     groups = [(r, sequences(r)) for r in runs]
     keys = {f"{r.config.dataset.width}/{s.scene.name}/{s.camera}": dataset.ensure(r, s.scene).key
             for r, group in groups for s in group}
-    entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem,
-                        {"evaluate": to_dict(run.config.evaluate), "render": to_dict(run.config.render)},
-                        {**keys, "weights": weights}, run.device)
+    config = {"evaluate": to_dict(run.config.evaluate), "render": to_dict(run.config.render)}
+    if metaball is not None:
+        config["metaball"] = to_dict(run.config.metaball)
+    entry = cache.entry(run.data_dir, "evaluate", Path(run.loaded.path).stem, config, {**keys, "weights": weights},
+                        run.device)
     if not entry.begin(force=run.force):
         log.info("evaluate: cached (%s)", entry.dir / "report.md")
         return
@@ -78,7 +80,8 @@ def main(opts: StageOptions) -> None:
     by_size = {}
     for r, group in groups:
         size, cfg, device = r.config.dataset.width, r.config, r.device  # a Ray task carries these, not the run
-        results = run_tasks(lambda s, cfg=cfg, device=device: evaluate_sequence(s, cfg, refiner, methods, device),
+        results = run_tasks(lambda s, cfg=cfg, device=device: evaluate_sequence(s, cfg, refiner, methods, device,
+                                                                                metaball),
                             group, cfg.executor, cfg.ray_address)
         by_size[size] = (results, aggregate(results, methods))
         for m in methods:
@@ -86,6 +89,10 @@ def main(opts: StageOptions) -> None:
             log.info("evaluate %4d px %-9s mean %6.2f deg, median %5.2f, <10 deg %5.1f%%, IoU %.3f, PSNR %.2f, "
                      "flicker %.2f, %.0f ms/frame", size, m, t["mean_deg"], t["median_deg"], 100 * t["under_10"],
                      t["iou"], t["psnr"], t["flicker_deg"], t["ms_per_frame"])
+        if "metaball" in methods:
+            t = by_size[size][1]["metaball"]
+            log.info("evaluate %4d px metaball against its own ray-marched surface: mean %6.2f deg, median %5.2f, "
+                     "IoU %.3f", size, t["own_mean_deg"], t["own_median_deg"], t["own_iou"])
     first = next(iter(by_size))
     evaluation_figures(entry.dir, *by_size[first], methods)
     write_report(entry.dir, by_size, methods, weights)

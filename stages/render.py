@@ -38,6 +38,30 @@ def load_refiner(run: Run):
     return load_weights(path, run.device)
 
 
+def load_metaball(run: Run):
+    """(metaball generator, a content hash of its checkpoint) for ``metaball.weights``: 'shipped',
+    'trained' (this config's best checkpoint, training it if needed) or a path."""
+    from pipeline.metaball.inference import MetaballNet
+    from pipeline.metaball.train import SHIPPED_WEIGHTS as SHIPPED_METABALL
+
+    choice = run.config.metaball.weights
+    if choice == "trained":
+        from stages import metaball_train
+
+        path = metaball_train.ensure(run).path("best.pt")
+    else:
+        path = SHIPPED_METABALL if choice == "shipped" else Path(choice)
+    return MetaballNet(path, run.device), cache.file_hash(path)[:12]
+
+
+def networks(run: Run, methods) -> tuple[object, object, str]:
+    """(refiner, metaball generator, a key of both checkpoints) for the methods that need them
+    (None and '' for those not used)."""
+    refiner, weights = load_refiner(run) if "refined" in methods else (None, "")
+    metaball, metaball_weights = load_metaball(run) if "metaball" in methods else (None, "")
+    return refiner, metaball, "+".join(w for w in (weights, metaball_weights) if w)
+
+
 def render_entry(run: Run, name: str, cameras, sim_key: str, weights: str, module: str = "") -> cache.CacheEntry:
     """Keyed on the render and filter settings, the cameras, the particles and the weights."""
     filters = to_dict(run.config.dataset)
@@ -55,7 +79,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     sim = simulate.ensure(run, scene)
     info = read_sequence_info(sim.dir)
     methods = set(COMPARED if p.comparison else ()) | {p.method}
-    refiner, weights = load_refiner(run) if "refined" in methods else (None, "")
+    refiner, metaball, weights = networks(run, methods)
     entry = render_entry(run, scene.name, to_dict(scene.cameras), sim.key, weights)
     if not entry.begin(force=force):
         log.info("render %s: cached (%s)", scene.name, entry.dir)
@@ -68,7 +92,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
                                      refiner, frames, lambda f: load_frame(sim_dir / frame_name(f)),
                                      info.particle_radius, lambda i: camera_for_frame(scene.cameras, p.camera, i,
                                                                                       len(frames), p.width, p.height),
-                                     fps=info.fps / p.frame_stride)
+                                     fps=info.fps / p.frame_stride, metaball=metaball)
     per_frame = timings.per_call_ms()
     entry.finish(files, timings.as_dict(), ms_per_frame=per_frame, frames=len(frames), weights=weights)
     log.info("render %s: %d frames -> %s (%s)", scene.name, len(frames), entry.dir,

@@ -22,12 +22,12 @@ from pipeline.config import Config, ConfigError, Loaded, load
 from pipeline.device import choose_device
 from pipeline.frames import frame_name, load_frame, sequence_bounds
 from pipeline.particles.sequence import find_sequence, parse_frame_range
-from pipeline.renderer import render_sequence
+from pipeline.renderer import COMPARED, render_sequence
 from pipeline.shading.background import Surroundings
 from pipeline.sim.runner import import_sequence
 from pipeline.sph import IMPORT_PADDING_RADII
 from stages.common import Run, StageOptions
-from stages.render import load_refiner, render_entry
+from stages.render import networks, render_entry
 
 log = logging.getLogger("deep_ssfr")
 MODULE, WHERE = "stages.sequence", "command line"
@@ -92,7 +92,7 @@ def main(opts: StageOptions, req: Request) -> None:
         log.warning("render %s: the radius %.4g does not fit the sequence's extent %.4g; check --radius and the "
                     "units", name, radius, float((hi - lo).max()))
     cams, camera_key = sequence_cameras(req.camera, list(seq.numbers), lo - radius, hi + radius, p.width, p.height)
-    refiner, weights = load_refiner(run)
+    refiner, metaball, weights = networks(run, {p.method, *COMPARED})
     entry = render_entry(run, name, camera_key, sim.key, weights, MODULE)
     if entry.begin(force=run.force):
         log.info("render %s: frames %d to %d (%d) of %s, %dx%d, %s camera, method %s", name, seq.numbers[0],
@@ -101,7 +101,8 @@ def main(opts: StageOptions, req: Request) -> None:
                               walls=False)
         sim_dir = sim.dir  # shards carry a path, not the entry
         outputs, timings = render_sequence(entry.dir, name, around, loaded.config, run.device, refiner, indices,
-                                           lambda i: load_frame(sim_dir / frame_name(i)), radius, lambda i: cams[i])
+                                           lambda i: load_frame(sim_dir / frame_name(i)), radius, lambda i: cams[i],
+                                           metaball=metaball)
         entry.finish(outputs, timings.as_dict(), ms_per_frame=timings.per_call_ms(), frames=len(indices),
                      weights=weights)
     out = Path(req.out)

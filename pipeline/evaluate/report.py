@@ -55,6 +55,18 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
                              f"{q['mean_deg/bilateral']:.3f} | {q['median_deg/bilateral']:.3f} | "
                              f"{q['flicker_deg/bilateral']:.3f} | {table['refined']['iou']:.3f} |")
         lines.append("")
+    if "metaball" in methods:
+        lines += ["## Metaballs against their own ray-marched surface", "",
+                  "The metaball network's normals and silhouette against the metaball surface its particles make "
+                  "(ray-marched, what it was trained to predict), on every `metaball.target_stride`-th evaluated "
+                  "frame; the tables below compare it with the mesh like every other method.", "",
+                  "| size | mean (deg) | median (deg) | IoU | against the mesh: mean (deg) | IoU |",
+                  "|---|---|---|---|---|---|"]
+        for s in sizes:
+            t = by_size[s][1]["metaball"]
+            lines.append(f"| {s} | {t['own_mean_deg']:.2f} | {t['own_median_deg']:.2f} | {t['own_iou']:.3f} | "
+                         f"{t['mean_deg']:.2f} | {t['iou']:.3f} |")
+        lines.append("")
     for i, s in enumerate(sizes):
         results, table = by_size[s]
         lines += [f"## {s} x {s}", "", HEADER, "|" + "---|" * 11]

@@ -55,17 +55,24 @@ def _maps(method: str, ch: dict, refiner, threshold: float, focal_px: float, rad
     return maps["normals"], maps["mask"] > 0, maps["depth"]
 
 
-def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str, ...], device: str) -> dict:
-    """Per-method metrics of one held-out sequence, plus per-frame errors and examples for the figures."""
+def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str, ...], device: str,
+                      metaball=None) -> dict:
+    """Per-method metrics of one held-out sequence, plus per-frame errors and examples for the figures.
+
+    The ``metaball`` method is also scored against its own ray-marched metaball surface on every
+    ``metaball.target_stride``-th evaluated frame (``own_*`` figures)."""
     rp = config.render
     records = spread(seq.records, config.evaluate.frames_per_sequence)
     width, height = config.dataset.width, config.dataset.height
     shader = Shader(warp_device(device))
+    launch = Launcher(warp_device(device)) if "metaball" in methods else None
     background = BackgroundRenderer(Surroundings.of_scene(seq.scene), rp, width, height)
     scores = {k: {m: [] for m in methods} for k in ("errors", "per_frame", "iou", "psnr", "ssim")}
+    own: dict[str, list] = {"errors": [], "iou": []}
     examples, radii = [], []
     try:
-        for r in tqdm(records, desc=f"evaluate {seq.scene.name}/{seq.camera}", unit="frame", leave=False):
+        for k, r in enumerate(tqdm(records, desc=f"evaluate {seq.scene.name}/{seq.camera}", unit="frame",
+                                   leave=False)):
             ch = read_exr(seq.dataset_dir / r["file"])
             cam = camera_for_frame(seq.scene.cameras, seq.camera, r["index"], len(seq.records), width, height)
             radii.append(median_radius_px(ch["Z"], cam.focal_px, seq.particle_radius))
@@ -73,7 +80,16 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
             bg = shader.fill_sky(bg, bg_depth, cam, rp)
             target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
             maps = {m: _maps(m, ch, refiner, rp.normal_threshold, cam.focal_px, seq.particle_radius)
-                    for m in (*methods, "mesh")}
+                    for m in (*methods, "mesh") if m != "metaball"}
+            if "metaball" in methods:
+                x, _ = load_frame(seq.sim_dir / frame_name(r["frame"]))
+                g = metaball.gbuffers(x, seq.particle_radius, cam, launch)
+                maps["metaball"] = (g["normals"], g["mask"] > 0, g["depth"])
+                if k % config.metaball.target_stride == 0:
+                    surface = metaball.targets(x, seq.particle_radius, cam, launch)
+                    on = surface["mask"] > 0
+                    own["errors"].append(angular_errors(g["normals"], surface["normals"], (g["mask"] > 0) & on))
+                    own["iou"].append(iou(g["mask"] > 0, on))
             shaded = {}
             for m, (n, mask, depth) in maps.items():
                 src = {"normals": n.astype(np.float32), "depth": np.where(mask, depth, 0).astype(np.float32),
@@ -95,8 +111,14 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     finally:
         background.close()
         shader.close()
-    timings = time_methods(seq, config, (*methods, "mesh"), refiner, device)
+        if launch is not None:
+            launch.close()
+    timings = time_methods(seq, config, (*methods, "mesh"), refiner, device, metaball)
     result = {m: _summary(m, scores, timings) for m in methods}
+    if "metaball" in methods:
+        errors = summarize_angles(np.concatenate(own["errors"]) if own["errors"] else np.zeros(0))
+        result["metaball"].update({f"own_{k}": v for k, v in errors.items()}, own_iou=float(np.mean(own["iou"])),
+                                  own_frames=len(own["iou"]))
     result["mesh"] = {"ms_per_frame": timings["mesh"]}
     return {"scene": seq.scene.name, "camera": seq.camera, "frames": len(records), "size": [width, height],
             "radius_px": float(np.median(radii)) if radii else 0.0, "methods": result, "examples": examples}
@@ -113,7 +135,7 @@ def _summary(m: str, scores: dict, timings: dict) -> dict:
             "ms_per_frame": timings.get(m, float("nan")), "per_frame_mean_deg": per_frame}
 
 
-def time_methods(seq: HeldOut, config: Config, methods, refiner, device: str) -> dict[str, float]:
+def time_methods(seq: HeldOut, config: Config, methods, refiner, device: str, metaball=None) -> dict[str, float]:
     """Wall milliseconds per frame of each method from particles to its normal map (first frames)."""
     wdev = warp_device(device)
     ss, launch = ScreenSpace(wdev), Launcher(wdev)
@@ -128,7 +150,7 @@ def time_methods(seq: HeldOut, config: Config, methods, refiner, device: str) ->
                 cam = camera_for_frame(seq.scene.cameras, seq.camera, i, len(seq.records), p.width, p.height)
                 with t("total"):
                     normal_source(m, x, seq.particle_radius, cam, p, ss, launch, refiner,
-                                  config.render.normal_threshold)
+                                  config.render.normal_threshold, metaball=metaball)
             out[m] = round(t.mean_ms("total"), 1)
     finally:
         ss.close()
@@ -148,5 +170,12 @@ def aggregate(results: list[dict], methods) -> dict:
         table[m]["median_deg"] = float(np.nanmedian([row["median_deg"] for row in rows]))
         for k in ("iou", "psnr", "ssim", "flicker_deg", "ms_per_frame"):
             table[m][k] = float(np.nanmean([row[k] for row in rows]))
+    if "metaball" in methods:  # against its own ray-marched surface
+        rows = [r["methods"]["metaball"] for r in results]
+        w = np.array([row["own_pixels"] for row in rows], float)
+        table["metaball"]["own_mean_deg"] = float(np.nansum([row["own_mean_deg"] * wi for row, wi in
+                                                             zip(rows, w / max(w.sum(), 1), strict=True)]))
+        table["metaball"]["own_median_deg"] = float(np.nanmedian([row["own_median_deg"] for row in rows]))
+        table["metaball"]["own_iou"] = float(np.nanmean([row["own_iou"] for row in rows]))
     table["mesh"] = {"ms_per_frame": float(np.nanmean([r["methods"]["mesh"]["ms_per_frame"] for r in results]))}
     return table

@@ -1,0 +1,221 @@
+"""Training of the metaball pix2pix pair (Horvath 2019, section 5.3): epochs over the cached views,
+validation, checkpoints that resume.
+
+Writes into one folder: ``last.pt`` (both networks, both Adam states, epoch, history; atomic),
+``best.pt`` (the generator with its arguments and the config, chosen on the validation views' mean
+normal error), ``metrics.jsonl`` and ``loss_curve.png``. Views are held in memory as float16 and
+turned by random quarter turns and mirrored, the encoded normals turned alike. Each epoch draws from
+its own seeds, so a resumed run makes the draws a straight one would.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pipeline.cache import atomic_path
+from pipeline.config import MetaballConfig, to_dict
+from pipeline.evaluate.metrics import angular_errors, iou, summarize_angles
+from pipeline.metaball import decode_gbuffers
+from pipeline.metaball.dataset import training_pair
+from pipeline.metaball.networks import (
+    PatchDiscriminator,
+    UNetGenerator,
+    discriminator_loss,
+    generator_loss,
+    init_weights,
+)
+from pipeline.metaball.views import params_of
+from pipeline.model.train import TimeLimitReached, TrainingError
+from pipeline.plots import metaball_curves
+
+log = logging.getLogger("deep_ssfr")
+
+SHIPPED_WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "metaball.pt"
+"""The metaball generator shipped in the package (``make metaball-ship`` replaces it in place)."""
+
+VAL_VIEWS = 24
+"""Validation views scored each epoch (spread over the validation scenes)."""
+
+
+def generator_args(m: MetaballConfig) -> dict:
+    """The ``UNetGenerator`` arguments of a config (stored in every checkpoint)."""
+    return {"in_channels": 4, "out_channels": 7, "base_channels": m.base_channels, "upsample": m.upsample}
+
+
+def augment(x: np.ndarray, y: np.ndarray, turns: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A view (input 4 x H x W, encoded target 7 x H x W, both in [0, 1]) turned ``turns`` quarter turns
+    anticlockwise and then mirrored left-right: the image as a camera rolled or mirrored would see it.
+    The encoded normals turn with it ((x, y) -> (-y, x) a turn, x -> -x mirrored); empty stays 0."""
+    x, y = np.rot90(x, turns, axes=(1, 2)), np.rot90(y, turns, axes=(1, 2)).copy()
+    empty = y[4:7].max(axis=0) == 0
+    n = 2.0 * y[4:7] - 1.0
+    for _ in range(turns % 4):
+        n = np.stack([-n[1], n[0], n[2]])
+    if mirror:
+        x, y, empty = x[:, :, ::-1], y[:, :, ::-1], empty[:, ::-1]
+        n = n[:, :, ::-1] * np.array([-1.0, 1.0, 1.0])[:, None, None]
+    y[4:7] = np.where(empty, 0.0, 0.5 * (n + 1.0))
+    return np.ascontiguousarray(x), np.ascontiguousarray(y)
+
+
+class Pix2Pix:
+    """The generator, the PatchGAN discriminator and their Adam optimisers (the thesis' learning rate
+    and beta1), with the thesis' losses weighted by ``gan_weight`` and ``l1_weight``."""
+
+    def __init__(self, m: MetaballConfig, device: str, seed: int):
+        torch.manual_seed(seed)
+        self.m, self.device = m, torch.device(device)
+        self.generator = UNetGenerator(**generator_args(m)).to(self.device)
+        self.discriminator = PatchDiscriminator(11, m.disc_base_channels, m.disc_kernel).to(self.device)
+        init_weights(self.generator)
+        init_weights(self.discriminator)
+        betas = (m.beta1, 0.999)
+        self.opt_g = torch.optim.Adam(self.generator.parameters(), m.learning_rate, betas=betas)
+        self.opt_d = torch.optim.Adam(self.discriminator.parameters(), m.learning_rate, betas=betas)
+
+    def train_step(self, x: torch.Tensor, y: torch.Tensor) -> dict[str, float]:
+        """One step of both networks on a batch in [-1, 1] (the thesis' ``preprocess``)."""
+        self.generator.train()
+        self.discriminator.train()
+        fake = self.generator(x)
+        self.opt_d.zero_grad(set_to_none=True)
+        loss_d = discriminator_loss(self.discriminator(x, y), self.discriminator(x, fake.detach()))
+        loss_d.backward()
+        self.opt_d.step()
+        self.opt_g.zero_grad(set_to_none=True)
+        total, gan, l1 = generator_loss(self.discriminator(x, fake), fake, y, self.m.gan_weight, self.m.l1_weight)
+        total.backward()
+        self.opt_g.step()
+        return {k: float(v.detach()) for k, v in (("loss_d", loss_d), ("loss_g", total), ("loss_gan", gan),
+                                                   ("loss_l1", l1))}
+
+    def state(self, epoch: int, best: float, history: list) -> dict:
+        return {"epoch": epoch, "best": best, "history": history, "generator": self.generator.state_dict(),
+                "discriminator": self.discriminator.state_dict(), "opt_g": self.opt_g.state_dict(),
+                "opt_d": self.opt_d.state_dict(), "generator_args": generator_args(self.m), "config": to_dict(self.m)}
+
+    def load_state(self, state: dict) -> None:
+        self.generator.load_state_dict(state["generator"])
+        self.discriminator.load_state_dict(state["discriminator"])
+        self.opt_g.load_state_dict(state["opt_g"])
+        self.opt_d.load_state_dict(state["opt_d"])
+
+
+@torch.no_grad()
+def predict(generator: UNetGenerator, circles: np.ndarray, device: torch.device | str = "cpu") -> np.ndarray:
+    """The generator's 7 x H x W encoded G-buffers in [0, 1] for a 4 x H x W circle input in [0, 1]
+    (eval mode: no dropout, batch norm from its running statistics)."""
+    generator.eval()
+    x = torch.from_numpy(np.ascontiguousarray(circles, np.float32))[None].to(device)
+    return ((generator(2.0 * x - 1.0)[0] + 1.0) * 0.5).clamp(0.0, 1.0).cpu().numpy()
+
+
+def validation_metrics(generator: UNetGenerator, views: list[tuple[np.ndarray, np.ndarray]], m: MetaballConfig,
+                       device: torch.device) -> dict:
+    """Normal error (degrees) where prediction and target both show surface, silhouette IoU and the
+    mean L1 of the encoded buffers, over the validation views."""
+    p = params_of(m)
+    errors, ious, l1 = [], [], []
+    for x, y in views:
+        out = predict(generator, x.astype(np.float32), device)
+        pred, target = decode_gbuffers(out, p), decode_gbuffers(y.astype(np.float32), p)
+        both = (pred["mask"] > 0) & (target["mask"] > 0)
+        errors.append(angular_errors(pred["normals"], target["normals"], both))
+        ious.append(iou(pred["mask"] > 0, target["mask"] > 0))
+        l1.append(float(np.abs(out - y).mean()))
+    return {**summarize_angles(np.concatenate(errors)), "iou": float(np.mean(ious)), "l1": float(np.mean(l1))}
+
+
+def _load(paths: list[Path], m: MetaballConfig, desc: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    return [tuple(a.astype(np.float16) for a in training_pair(p, m))
+            for p in tqdm(paths, desc=desc, unit="view", leave=False)]
+
+
+def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val_paths: list[Path],
+        device: str) -> float:
+    """Train (or resume) until ``m.epochs``; returns the best validation mean normal error (degrees).
+    Raises ``TimeLimitReached`` after the epoch that passes ``m.time_limit_minutes``."""
+    folder = Path(folder)
+    last = folder / "last.pt"
+    nets = Pix2Pix(m, device, seed)
+    start, best, history = 0, math.inf, []
+    if last.exists():
+        try:
+            state = torch.load(last, map_location=nets.device, weights_only=True)
+        except Exception as exc:
+            raise TrainingError(f"corrupt checkpoint {last} ({exc}); delete it or run `make metaball-train FORCE=1` "
+                                "to train again") from None
+        nets.load_state(state)
+        start, best, history = int(state["epoch"]), float(state["best"]), list(state["history"])
+        log.info("metaball train: resuming after epoch %d", start)
+    if start >= m.epochs:
+        return best
+    train = _load(train_paths, m, "load train")
+    step = max(1, len(val_paths) // VAL_VIEWS)
+    val = _load(val_paths[::step][:VAL_VIEWS], m, "load val") or train[:2]
+    steps = max(1, len(train) // m.batch_size)
+    log.info("metaball train: generator %.2f M parameters, discriminator %.2f M, %d views, %d steps of %d per epoch "
+             "on %s", sum(p.numel() for p in nets.generator.parameters()) / 1e6,
+             sum(p.numel() for p in nets.discriminator.parameters()) / 1e6, len(train), steps, m.batch_size, device)
+    began = time.perf_counter()
+    for epoch in tqdm(range(start + 1, m.epochs + 1), desc="metaball train", unit="epoch", initial=start,
+                      total=m.epochs):
+        rng = np.random.default_rng([seed, 11, epoch])
+        torch.manual_seed(seed * 100_003 + epoch)  # dropout
+        order = rng.permutation(len(train))
+        sums: dict[str, float] = {}
+        t0 = time.perf_counter()
+        for s in tqdm(range(steps), desc=f"epoch {epoch}", unit="step", leave=False):
+            pairs = [augment(*(a.astype(np.float32) for a in train[i]), int(rng.integers(4)), bool(rng.random() < 0.5))
+                     for i in order[s * m.batch_size:(s + 1) * m.batch_size]]
+            x = torch.from_numpy(np.stack([p[0] for p in pairs])).to(nets.device) * 2.0 - 1.0
+            y = torch.from_numpy(np.stack([p[1] for p in pairs])).to(nets.device) * 2.0 - 1.0
+            for k, v in nets.train_step(x, y).items():
+                sums[k] = sums.get(k, 0.0) + v / steps
+        seconds = time.perf_counter() - t0
+        metrics = validation_metrics(nets.generator, val, m, nets.device)
+        record = {"epoch": epoch, **sums, "val": metrics, "train_seconds": round(seconds, 1),
+                  "images_per_second": round(steps * m.batch_size / seconds, 2)}
+        history.append(record)
+        improved, best = metrics["mean_deg"] < best, min(best, metrics["mean_deg"])
+        state = nets.state(epoch, best, history)
+        with atomic_path(last) as tmp:
+            torch.save(state, tmp)
+        if improved:
+            with atomic_path(folder / "best.pt") as tmp:
+                torch.save({k: state[k] for k in ("epoch", "generator", "generator_args", "config", "history")}
+                           | {"metrics": metrics}, tmp)
+        with atomic_path(folder / "metrics.jsonl") as tmp:
+            tmp.write_text("".join(json.dumps(h) + "\n" for h in history))
+        log.info("metaball epoch %d: D %.3f G %.3f (GAN %.3f, L1 %.4f) | val normals %.2f deg (median %.2f), IoU %.3f, "
+                 "L1 %.4f | %.1f img/s", epoch, sums["loss_d"], sums["loss_g"], sums["loss_gan"], sums["loss_l1"],
+                 metrics["mean_deg"], metrics["median_deg"], metrics["iou"], metrics["l1"], record["images_per_second"])
+        if m.time_limit_minutes and epoch < m.epochs and time.perf_counter() - began > 60 * m.time_limit_minutes:
+            log.info("metaball train: time limit of %g minutes reached after epoch %d of %d; the next run resumes",
+                     m.time_limit_minutes, epoch, m.epochs)
+            raise TimeLimitReached(epoch)
+    metaball_curves(folder / "loss_curve.png", history)
+    return best
+
+
+def load_generator(path: Path, device: str = "cpu") -> tuple[UNetGenerator, dict]:
+    """A trained generator (``best.pt`` or the shipped weights) in eval mode, and its checkpoint dict."""
+    try:
+        state = torch.load(path, map_location=device, weights_only=True)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no metaball weights at {path}: run `make metaball-train` or set "
+                                "metaball.weights") from None
+    except Exception as exc:
+        raise TrainingError(f"cannot read metaball weights {path} ({exc})") from None
+    generator = UNetGenerator(**state["generator_args"]).to(device)
+    generator.load_state_dict(state["generator"])
+    generator.eval()
+    return generator, state

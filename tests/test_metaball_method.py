@@ -1,0 +1,179 @@
+"""The metaball method end to end: the working frame, augmentation, training that resumes, the
+generator as a normal source, and the stages that build, train and ship it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from pipeline.camera import Camera, look_at
+from pipeline.config import METHODS, ConfigError, MetaballConfig, load
+from pipeline.metaball import encode_targets, paper_camera
+from pipeline.metaball.dataset import training_pair, write_view
+from pipeline.metaball.inference import MetaballNet
+from pipeline.metaball.train import SHIPPED_WEIGHTS, augment, fit
+from pipeline.metaball.views import fluid_view, random_ball_set, working_view
+from pipeline.parallel import Launcher
+from stages import cli
+from tests.conftest import ROOT
+
+SMALL = MetaballConfig(base_channels=4, disc_base_channels=4, batch_size=2, epochs=2, step=0.01)
+
+
+@pytest.fixture(scope="module")
+def launch():
+    out = Launcher("cpu")
+    yield out
+    out.close()
+
+
+def _balls(n: int = 12, seed: int = 3) -> tuple[np.ndarray, float]:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-0.06, 0.06, (n, 3)) + np.array([0.0, 0.0, -1.0]), 0.02
+
+
+def test_the_working_frame_does_not_depend_on_the_scene_scale(launch):
+    """The same balls three times larger and three times further away (the world scaled about the
+    eye) give the same circles, codes and normals; the depth comes back in the scene's units."""
+    x, r = _balls()
+    eye = np.array([0.05, 0.04, -0.72])
+    cam = Camera(look_at(eye, (0.0, 0.0, -1.0)), 40.0, 64, 64)
+    a = fluid_view(x, r, cam, SMALL)
+    b = fluid_view(eye + 3.0 * (x - eye), 3.0 * r, cam, SMALL)
+    np.testing.assert_allclose(a.positions, b.positions, atol=1e-9)
+    np.testing.assert_allclose(a.circles(launch), b.circles(launch), atol=1e-6)
+    ta, tb = a.targets(launch), b.targets(launch)
+    assert ta["mask"].sum() > 200 and (ta["mask"] == tb["mask"]).mean() > 0.999
+    both = (ta["mask"] > 0) & (tb["mask"] > 0)
+    np.testing.assert_allclose(ta["normals"][both], tb["normals"][both], atol=1e-3)
+    np.testing.assert_allclose(3.0 * ta["depth"][both], tb["depth"][both], rtol=1e-4)
+    # the surface lies in front of the nearest centre by about a ball radius: depths are the scene's
+    nearest = float((-cam.to_view(x)[:, 2]).min())
+    assert nearest - 3 * r < ta["depth"][both].min() < nearest
+    codes = a.depth_code(ta["depth"][both])
+    np.testing.assert_allclose(a.depth_of(codes), ta["depth"][both], rtol=1e-5)
+
+
+@pytest.mark.parametrize("turns,mirror", [(1, False), (2, False), (0, True), (3, True)])
+def test_augmentation_equals_rendering_the_turned_balls(launch, turns, mirror):
+    """Turning and mirroring a view's arrays (the encoded normals with them) gives what rendering the
+    balls turned about the view axis, or mirrored, gives."""
+    rng = np.random.default_rng(5)
+    positions, radii, colours = random_ball_set(rng, 20)
+    cam = paper_camera(48, 48)
+    m = MetaballConfig(step=0.02)
+
+    def render(p):
+        view = working_view(p, radii, cam, m)
+        t = view.targets(launch, colours)
+        t["depth"] = t["depth"] * view.scale
+        return view.circles(launch, colours), encode_targets(t, view.params)
+
+    x, y = render(positions)
+    turned = positions.copy()
+    for _ in range(turns):
+        turned[:, :2] = np.stack([-turned[:, 1], turned[:, 0]], axis=1)
+    if mirror:
+        turned[:, 0] = -turned[:, 0]
+    want_x, want_y = render(turned)
+    got_x, got_y = augment(x, y, turns, mirror)
+    np.testing.assert_allclose(got_x, want_x, atol=1e-6)
+    surface = (want_y[4:7].max(0) > 0) & (got_y[4:7].max(0) > 0)
+    assert surface.mean() > 0.05 and (surface == (want_y[4:7].max(0) > 0)).mean() > 0.995
+    np.testing.assert_allclose(got_y[4:7][:, surface], want_y[4:7][:, surface], atol=2e-3)
+
+
+@pytest.fixture(scope="module")
+def views(tmp_path_factory, launch):
+    """Four random-set views at 256 x 256 (the U-Net's smallest side)."""
+    folder = tmp_path_factory.mktemp("metaball_views")
+    cam = paper_camera(256, 256)
+    paths = []
+    for k in range(4):
+        positions, radii, colours = random_ball_set(np.random.default_rng([9, k]), 12)
+        path = folder / f"set_{k}.exr"
+        share = write_view(path, working_view(positions, radii, cam, SMALL), cam, launch, float(np.median(radii)),
+                           colours)
+        assert 0 < share < 1
+        paths.append(path)
+    return paths
+
+
+def test_training_resumes_as_a_straight_run_would_and_the_generator_predicts(tmp_path, views, launch):
+    straight = tmp_path / "straight"
+    resumed = tmp_path / "resumed"
+    straight.mkdir()
+    resumed.mkdir()
+    fit(straight, SMALL, 0, views[:3], views[3:], "cpu")
+    fit(resumed, MetaballConfig(**{**SMALL.__dict__, "epochs": 1}), 0, views[:3], views[3:], "cpu")
+    fit(resumed, SMALL, 0, views[:3], views[3:], "cpu")
+    a = torch.load(straight / "last.pt", weights_only=True)
+    b = torch.load(resumed / "last.pt", weights_only=True)
+    assert a["epoch"] == b["epoch"] == 2
+    for k, v in a["generator"].items():
+        assert torch.equal(v, b["generator"][k]), k
+    history = [json.loads(line) for line in (straight / "metrics.jsonl").read_text().splitlines()]
+    assert [h["epoch"] for h in history] == [1, 2] and 0 <= history[-1]["val"]["iou"] <= 1
+    assert (straight / "loss_curve.png").exists()
+    # the generator as the metaball method: any image size (padded to 256 and cropped back)
+    net = MetaballNet(straight / "best.pt")
+    assert net.config == SMALL
+    x, r = _balls()
+    cam = Camera(look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0)), 40.0, 300, 200)
+    out = net.gbuffers(x, r, cam, launch)
+    assert out["normals"].shape == (200, 300, 3) and out["depth"].shape == (200, 300)
+    shown = out["mask"] > 0
+    np.testing.assert_allclose(np.linalg.norm(out["normals"][shown], axis=-1), 1.0, atol=1e-4)
+    assert (out["depth"][~shown] == 0).all() and (out["depth"][shown] > 0).all()
+
+
+def test_training_pair_encodes_what_was_rendered(views):
+    x, y = training_pair(views[0], SMALL)
+    assert x.shape == (4, 256, 256) and y.shape == (7, 256, 256)
+    surface = y[4:7].max(0) > 0
+    assert ((y[3] < 1) == surface).all(), "depth code 1 exactly where the ray met nothing"
+    assert 0 <= y.min() and y.max() <= 1 and x[3].max() <= 1
+
+
+def test_metaball_is_a_method_and_bad_method_names_are_config_errors(tmp_path):
+    assert "metaball" in METHODS
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"base": str(ROOT / "configs" / "default.yaml"),
+                                    "evaluate": {"methods": ["refined", "metaballs"]}}))
+    with pytest.raises(ConfigError, match="evaluate.methods"):
+        load(path)
+
+
+def test_the_shipped_metaball_weights_load_with_their_card():
+    net = MetaballNet(SHIPPED_WEIGHTS)
+    card = json.loads(SHIPPED_WEIGHTS.with_suffix(".json").read_text())
+    assert SHIPPED_WEIGHTS.stat().st_size < 20 * 2**20
+    assert card["generator_args"]["base_channels"] == net.config.base_channels
+    assert card["validation"]["mean_deg"] < 30 and card["data"]["training_views"] > 0
+
+
+def test_metaball_stages_build_train_and_ship(tmp_path):
+    """metaball-dataset renders only training and validation scenes, metaball-train trains on them,
+    metaball-ship writes weights and a card."""
+    body = yaml.safe_load((ROOT / "configs" / "default.yaml").read_text())
+    body.update({"scenes": ["dam_break", "merging"], "scene_dir": str(ROOT / "configs" / "scenes"),
+                 "data_dir": str(tmp_path / "data")})
+    body["simulate"].update({"particle_radius": 0.03, "frames": 2})
+    body["dataset"] = {"holdout_scenes": ["merging"], "random_radius_px": [2, 4]}
+    body["train"] = {"validation_scenes": ["merging"]}
+    body["metaball"] = {"base_channels": 4, "disc_base_channels": 4, "batch_size": 2, "epochs": 1, "step": 0.02,
+                        "frame_stride": 2, "views_per_frame": 1, "random_sets": 1, "repeats": 2, "max_balls": 8}
+    config = tmp_path / "small.yaml"
+    config.write_text(yaml.safe_dump(body))
+    assert cli.main(["metaball-dataset", "--config", str(config)]) == 0
+    built = sorted(p.name.split("-")[0] for p in (tmp_path / "data" / "metaball_dataset").iterdir())
+    assert built == ["dam_break", "merging", "random_sets"]
+    out = tmp_path / "shipped"
+    assert cli.main(["metaball-ship", "--config", str(config), "--out", str(out)]) == 0
+    card = json.loads((out / "metaball.json").read_text())
+    assert card["data"]["training_views"] == 1 + 2 and card["data"]["validation_views"] == 1
+    assert MetaballNet(out / "metaball.pt").config.base_channels == 4
