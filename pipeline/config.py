@@ -489,7 +489,7 @@ class RenderConfig:
 class EvaluateConfig:
     """Held-out metrics (the evaluate stage)."""
 
-    methods: tuple[Method, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined")
+    methods: tuple[Method, ...] = ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "metaball")
     """Methods compared with the mesh reference ('metaball' also against its own ray-marched surface)."""
     frames_per_sequence: int = Field(0, ge=0)
     """Frames evaluated per held-out sequence, evenly spread over it (0: all)."""

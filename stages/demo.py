@@ -2,7 +2,7 @@
 
 Simulates the default scene (dam break), builds its screen-space inputs, refines the normal maps
 with the shipped generator, shades, and writes the EXR frames, a preview MP4 and the comparison
-(bilateral | narrow-range | refined | mesh) as video and contact sheet. Prints where they are.
+(bilateral | narrow-range | refined | metaballs | mesh) as video and contact sheet. Prints where they are.
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
                  m.epochs, entry.dir)
         return entry
     entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=m.epochs,
-                 best_val_mean_deg=best, training_views=len(train), validation_views=len(val))
+                 best_val_score_deg=best, training_views=len(train), validation_views=len(val))
     return entry
 
 

@@ -65,8 +65,25 @@ def test_render_writes_named_exr_sequence_video_and_comparison(tmp_path):
     assert count_video_frames(entry / "dam_break_comparison.mp4") == 2
     assert len(list((entry / "preview").glob("*.png"))) == 2
     assert (entry / "dam_break_comparison_sheet.png").exists()
+    from PIL import Image
+
+    # bilateral | narrow-range | refined | metaballs | mesh
+    assert Image.open(entry / "compare" / "frame_0001.png").size == (5 * 64, 64)
     manifest = json.loads((entry / "manifest.json").read_text())
     assert {"inputs", "refiner", "shading", "motion", "exr_write"} <= set(manifest["ms_per_frame"])
+    assert len(manifest["weights"].split("+")) == 2, "keyed on both generators"
+
+
+def test_render_with_the_metaball_method(tmp_path):
+    config = _config(tmp_path, _tiny_checkpoint(tmp_path), method="metaball", comparison=False)
+    assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
+    (entry,) = (tmp_path / "data" / "render").iterdir()
+    ch = read_exr(entry / "frames" / "frame_0003.exr")
+    fluid = ch["ViewLayer.Fluid.A"] > 0
+    assert fluid.mean() > 0.05 and (ch["ViewLayer.Depth.Z"][fluid] > 0).all()
+    n = stack(ch, "ViewLayer.ViewNormal.")[fluid]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
+    assert "metaball" in json.loads((entry / "manifest.json").read_text())["ms_per_frame"]
 
 
 def test_missing_model_is_a_clear_error(tmp_path, capsys):
@@ -116,22 +133,26 @@ def test_evaluate_smoke(tmp_path):
     config = _config(tmp_path, _tiny_checkpoint(tmp_path))
     body = yaml.safe_load(open(config))
     body["evaluate"]["sizes"] = [64, 96]
+    body["evaluate"]["methods"] = ["gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "metaball"]
     open(config, "w").write(yaml.safe_dump(body))
     assert cli.main(["evaluate", "--config", config]) == 0
     (entry,) = (tmp_path / "data" / "evaluate").iterdir()
     report = (entry / "report.md").read_text()
     assert "## 64 x 64" in report and "## 96 x 96" in report and "Refined against the filters" in report
     for method in ("Gaussian", "bilateral", "narrow-range", "ellipsoids", "ellipsoids + narrow-range",
-                   "refined (cGAN)", "mesh (reference)"):
+                   "refined (cGAN)", "metaballs (pix2pix)", "mesh (reference)"):
         assert method in report
+    assert "Metaballs against their own ray-marched surface" in report
     metrics = json.loads((entry / "metrics.json").read_text())
     # held out: both cameras of merging, the orbit of dam_break, both cameras of the imported frame
     assert len(metrics["sequences"]) == 5
     assert set(metrics["sizes"]) == {"64", "96"} and len(metrics["sizes"]["96"]["sequences"]) == 5
     assert {s["size"][0] for s in metrics["sizes"]["96"]["sequences"]} == {96}
-    for m in ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined"):
+    for m in ("gaussian", "bilateral", "nrf", "aniso", "aniso_nrf", "refined", "metaball"):
         row = metrics["overall"][m]
         assert 0 <= row["mean_deg"] <= 180 and 0 <= row["iou"] <= 1 and row["ms_per_frame"] > 0
+    own = metrics["overall"]["metaball"]
+    assert 0 <= own["own_mean_deg"] <= 180 and 0 <= own["own_iou"] <= 1
     assert (entry / "methods.png").exists() and (entry / "examples.png").exists()
 
 

@@ -2,10 +2,11 @@
 validation, checkpoints that resume.
 
 Writes into one folder: ``last.pt`` (both networks, both Adam states, epoch, history; atomic),
-``best.pt`` (the generator with its arguments and the config, chosen on the validation views' mean
-normal error), ``metrics.jsonl`` and ``loss_curve.png``. Views are held in memory as float16 and
-turned by random quarter turns and mirrored, the encoded normals turned alike. Each epoch draws from
-its own seeds, so a resumed run makes the draws a straight one would.
+``best.pt`` (the generator with its arguments and the config, chosen on the validation views'
+normal error with silhouette misses counted as 90 degrees), ``metrics.jsonl`` and ``loss_curve.png``.
+Views are held in memory as float16 and turned by random quarter turns and mirrored, the encoded
+normals turned alike. Each epoch draws from its own seeds, so a resumed run makes the draws a
+straight one would.
 """
 
 from __future__ import annotations
@@ -120,18 +121,23 @@ def predict(generator: UNetGenerator, circles: np.ndarray, device: torch.device 
 
 def validation_metrics(generator: UNetGenerator, views: list[tuple[np.ndarray, np.ndarray]], m: MetaballConfig,
                        device: torch.device) -> dict:
-    """Normal error (degrees) where prediction and target both show surface, silhouette IoU and the
-    mean L1 of the encoded buffers, over the validation views."""
+    """Normal error (degrees) where prediction and target both show surface, silhouette IoU, the mean
+    L1 of the encoded buffers, and ``score_deg``, which picks the best epoch: the normal error over
+    every pixel either shows as surface, 90 degrees where only one does (a collapsed silhouette cannot
+    win on the few normals it keeps)."""
     p = params_of(m)
-    errors, ious, l1 = [], [], []
+    errors, ious, l1, scored = [], [], [], []
     for x, y in views:
         out = predict(generator, x.astype(np.float32), device)
         pred, target = decode_gbuffers(out, p), decode_gbuffers(y.astype(np.float32), p)
-        both = (pred["mask"] > 0) & (target["mask"] > 0)
-        errors.append(angular_errors(pred["normals"], target["normals"], both))
-        ious.append(iou(pred["mask"] > 0, target["mask"] > 0))
+        shown, wanted = pred["mask"] > 0, target["mask"] > 0
+        e = angular_errors(pred["normals"], target["normals"], shown & wanted)
+        errors.append(e)
+        scored += [e, np.full(int((shown ^ wanted).sum()), 90.0)]
+        ious.append(iou(shown, wanted))
         l1.append(float(np.abs(out - y).mean()))
-    return {**summarize_angles(np.concatenate(errors)), "iou": float(np.mean(ious)), "l1": float(np.mean(l1))}
+    return {**summarize_angles(np.concatenate(errors)), "iou": float(np.mean(ious)), "l1": float(np.mean(l1)),
+            "score_deg": float(np.concatenate(scored).mean())}
 
 
 def _load(paths: list[Path], m: MetaballConfig, desc: str) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -141,7 +147,7 @@ def _load(paths: list[Path], m: MetaballConfig, desc: str) -> list[tuple[np.ndar
 
 def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val_paths: list[Path],
         device: str) -> float:
-    """Train (or resume) until ``m.epochs``; returns the best validation mean normal error (degrees).
+    """Train (or resume) until ``m.epochs``; returns the best validation ``score_deg``.
     Raises ``TimeLimitReached`` after the epoch that passes ``m.time_limit_minutes``."""
     folder = Path(folder)
     last = folder / "last.pt"
@@ -157,6 +163,7 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
         start, best, history = int(state["epoch"]), float(state["best"]), list(state["history"])
         log.info("metaball train: resuming after epoch %d", start)
     if start >= m.epochs:
+        metaball_curves(folder / "loss_curve.png", history)  # a run stopped by its time limit has none yet
         return best
     train = _load(train_paths, m, "load train")
     step = max(1, len(val_paths) // VAL_VIEWS)
@@ -185,7 +192,7 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
         record = {"epoch": epoch, **sums, "val": metrics, "train_seconds": round(seconds, 1),
                   "images_per_second": round(steps * m.batch_size / seconds, 2)}
         history.append(record)
-        improved, best = metrics["mean_deg"] < best, min(best, metrics["mean_deg"])
+        improved, best = metrics["score_deg"] < best, min(best, metrics["score_deg"])
         state = nets.state(epoch, best, history)
         with atomic_path(last) as tmp:
             torch.save(state, tmp)

@@ -1,0 +1,68 @@
+"""Costs of the metaball method per frame on this machine: the circle input, the generator's forward
+pass (the shipped weights) and the whole method from particles to normals, against the ray-marched
+metaball surface it stands in for, at 256 to 1024 px. The thesis reports 22 ms a frame at 512 x 512
+on a GTX 1080 for its 32-channel generator; this prints what the 16-channel one costs here.
+
+Frame: a PBF dam break of 49,140 particles (r = 7.4 mm) framed whole by the camera.
+
+    .venv/bin/python benchmarks/bench_metaball.py [--sizes 256 512 1024] [--repeat 3] [--no-march]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
+
+from pipeline.metaball.inference import MetaballNet  # noqa: E402
+from pipeline.metaball.train import SHIPPED_WEIGHTS, predict  # noqa: E402
+from pipeline.parallel import Launcher  # noqa: E402
+
+
+def _median_ms(fn, repeat: int) -> float:
+    fn()  # warm-up: kernel loads, allocator
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1000 * float(np.median(times))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--particles", type=int, default=49_140)
+    ap.add_argument("--no-march", action="store_true", help="skip the ray-marched surface (seconds a frame)")
+    args = ap.parse_args()
+    x, r = _pbf_frame(args.particles)
+    net = MetaballNet(SHIPPED_WEIGHTS)
+    launch = Launcher("cpu")
+    print(f"metaball method, {len(x)} particles (r = {1000 * r:.1f} mm), shipped generator "
+          f"({sum(p.numel() for p in net.generator.parameters()) / 1e6:.2f} M parameters), "
+          f"{torch.get_num_threads()} torch threads")
+    print(f"{'size':>6} {'circles ms':>11} {'generator ms':>13} {'method ms':>10} {'ray march ms':>13} "
+          f"{'march/method':>13}")
+    for size in args.sizes:
+        cam = _camera_for(x, size)
+        view = net.view(x, r, cam)
+        circles = view.circles(launch)
+        t_circles = _median_ms(lambda v=view: v.circles(launch), args.repeat)
+        t_net = _median_ms(lambda c=circles: predict(net.generator, c), args.repeat)
+        t_method = _median_ms(lambda c=cam: net.gbuffers(x, r, c, launch), args.repeat)
+        t_march = float("nan") if args.no_march else _median_ms(lambda v=view: v.targets(launch), 1)
+        print(f"{size:>6} {t_circles:>11.1f} {t_net:>13.1f} {t_method:>10.1f} {t_march:>13.0f} "
+              f"{t_march / t_method:>12.1f}x")
+    launch.close()
+
+
+if __name__ == "__main__":
+    main()
