@@ -12,28 +12,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
+from bench_render import _best_ms as _median_ms  # noqa: E402
 
 from pipeline.metaball.inference import MetaballNet  # noqa: E402
 from pipeline.metaball.train import SHIPPED_WEIGHTS, predict  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
-
-
-def _median_ms(fn, repeat: int) -> float:
-    fn()  # warm-up: kernel loads, allocator
-    times = []
-    for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1000 * float(np.median(times))
 
 
 def main() -> None:
