@@ -61,6 +61,8 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
 
     The ``metaball`` method is also scored against its own ray-marched metaball surface on every
     ``metaball.target_stride``-th evaluated frame (``own_*`` figures)."""
+    if "metaball" in methods and metaball is None:
+        raise ValueError("the metaball method needs a metaball generator")
     rp = config.render
     records = spread(seq.records, config.evaluate.frames_per_sequence)
     width, height = config.dataset.width, config.dataset.height
