@@ -177,3 +177,12 @@ def test_metaball_stages_build_train_and_ship(tmp_path):
     card = json.loads((out / "metaball.json").read_text())
     assert card["data"]["training_views"] == 1 + 2 and card["data"]["validation_views"] == 1
     assert MetaballNet(out / "metaball.pt").config.base_channels == 4
+
+
+def test_missing_or_damaged_metaball_weights_are_clear_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="make metaball-train"):
+        MetaballNet(tmp_path / "nope.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(RuntimeError, match="cannot read metaball weights"):
+        MetaballNet(bad)
