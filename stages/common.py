@@ -50,6 +50,17 @@ class StageOptions:
     """'local' or 'ray' over the config's ``executor`` ('': the config's)."""
 
 
+def train_scenes(run: Run) -> list[str]:
+    """Scenes whose training split is used: ``train.train_scenes``, or every configured scene outside
+    ``dataset.holdout_scenes`` (the refiner's and the metaball network's alike)."""
+    cfg = run.config
+    chosen = cfg.train.train_scenes or tuple(s for s in cfg.scenes if s not in cfg.dataset.holdout_scenes)
+    for s in chosen:
+        if s not in cfg.scenes:
+            raise StageError(f"train.train_scenes names {s!r}, which is not in scenes {list(cfg.scenes)}")
+    return [s for s in chosen if s in run.loaded.scenes]
+
+
 def make_run(opts: StageOptions, overrides: dict | None = None) -> Run:
     """Load config (with ``overrides`` and the command line's executor) and choose the device."""
     overrides = {**(overrides or {}), **({"executor": opts.executor} if opts.executor else {})}

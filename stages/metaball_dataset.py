@@ -19,7 +19,7 @@ from pipeline.device import warp_device
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
 from pipeline.metaball.dataset import build_fluid_views, build_random_sets
 from stages import simulate
-from stages.common import Run, StageError, StageOptions, make_run
+from stages.common import Run, StageError, StageOptions, make_run, train_scenes
 
 log = logging.getLogger("deep_ssfr")
 RANDOM_SETS = "random_sets"
@@ -34,13 +34,8 @@ def roles(run: Run) -> tuple[list[SceneConfig], list[SceneConfig]]:
     (or ``train.train_scenes``) train; ``train.validation_scenes`` validate. Other held-out scenes are
     never rendered for the network."""
     cfg = run.config
-    held = set(cfg.dataset.holdout_scenes)
-    chosen = cfg.train.train_scenes or tuple(s for s in cfg.scenes if s not in held)
-    for name in chosen:
-        if name not in cfg.scenes:
-            raise StageError(f"train.train_scenes names {name!r}, which is not in scenes {list(cfg.scenes)}")
     scenes = run.loaded.scenes
-    train = [scenes[s] for s in chosen if s in scenes]
+    train = [scenes[s] for s in train_scenes(run)]
     val = [scenes[s] for s in cfg.train.validation_scenes if s in scenes]
     if not train and not cfg.metaball.random_sets:
         raise StageError("no metaball training views: no training scene and metaball.random_sets is 0")

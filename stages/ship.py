@@ -19,7 +19,7 @@ import torch
 from pipeline import cache
 from pipeline.model import SHIPPED_WEIGHTS as SHIPPED
 from stages import train
-from stages.common import StageOptions, make_run
+from stages.common import StageOptions, make_run, train_scenes
 
 log = logging.getLogger("deep_ssfr")
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,7 +39,7 @@ def card(run, entry: cache.CacheEntry, state: dict) -> dict:
         "generator_args": dict(state["generator_args"]),
         "train_config": state["config"],
         "data": {
-            "scenes_trained": train.train_scenes(run),
+            "scenes_trained": train_scenes(run),
             "held_out_scenes": list(cfg.dataset.holdout_scenes),
             "validation": (f"best epoch chosen on {', '.join(cfg.train.validation_scenes)} (held out, not reported "
                            "by evaluate)" if cfg.train.validation_scenes else

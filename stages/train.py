@@ -17,19 +17,9 @@ from pipeline.config import to_dict
 from pipeline.model import distributed
 from pipeline.model.train import TimeLimitReached, fit, init_path
 from stages import dataset
-from stages.common import Run, StageError, StageOptions, make_run
+from stages.common import Run, StageError, StageOptions, make_run, train_scenes
 
 log = logging.getLogger("deep_ssfr")
-
-
-def train_scenes(run: Run) -> list[str]:
-    """Scenes whose training split is used."""
-    cfg = run.config
-    chosen = cfg.train.train_scenes or tuple(s for s in cfg.scenes if s not in cfg.dataset.holdout_scenes)
-    for s in chosen:
-        if s not in cfg.scenes:
-            raise StageError(f"train.train_scenes names {s!r}, which is not in scenes {list(cfg.scenes)}")
-    return [s for s in chosen if s in run.loaded.scenes]
 
 
 def collect(run: Run) -> tuple[dict[str, str], list[Path], list[Path]]:
