@@ -146,21 +146,23 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
 
     ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
     between the methods and views of one frame that need them (ellipsoids, refined on ellipsoids,
-    the mesh)."""
+    the mesh), and the sphere splat's thickness of the last view seen (metaballs shade with it)."""
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
     if method == "refined" and refiner is None:
         raise ValueError("the refined method needs a generator")
+    cache = frame_cache if frame_cache is not None else {}
     if method == "metaball":
         if metaball is None:
             raise ValueError("the metaball method needs a metaball generator")
-        with t("inputs"):  # the spheres' thickness, for the shader's absorption
-            thickness = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=())["thickness"]
+        seen, thickness = cache.get("sphere_thickness", (None, None))
+        if seen is not camera:  # the spheres' thickness, for the shader's absorption
+            with t("inputs"):
+                thickness = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=())["thickness"]
         with t("metaball"):
             g = metaball.gbuffers(positions, radius, camera, launch)
         return {"normals": g["normals"], "depth": g["depth"], "mask": g["mask"], "thickness": thickness}
-    cache = frame_cache if frame_cache is not None else {}
 
     def kernels():
         if "kernels" not in cache:
@@ -181,6 +183,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         screen_filter = "bilateral" if method in ("refined", "mesh") else method
         with t("inputs"):
             ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
+        cache["sphere_thickness"] = (camera, ch["thickness"])  # the same splat's for every method of this view
     if method == "refined":
         names = input_channels(refiner.splat)
         with t("refiner"):

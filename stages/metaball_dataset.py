@@ -42,11 +42,15 @@ def roles(run: Run) -> tuple[list[SceneConfig], list[SceneConfig]]:
     return train, val
 
 
+VIEW_FIELDS = ("ball_radius_radii", "iso_level", "kernel_radius_radii", "working_ball_radius", "depth_margin",
+               "depth_span", "step", "bisections", "outline_width", "outline_min_px", "size", "frame_stride",
+               "max_frames", "views_per_frame", "random_sets", "repeats", "max_balls", "seed")
+"""The ``metaball`` keys the views depend on (the network's and training's keys change none of them)."""
+
+
 def _config(run: Run, **extra) -> dict:
     m = to_dict(run.config.metaball)
-    for how_not_what in ("epochs", "time_limit_minutes", "weights", "target_stride"):
-        m.pop(how_not_what)
-    return {"metaball": m, **extra}
+    return {"metaball": {k: m[k] for k in VIEW_FIELDS}, **extra}
 
 
 def _workers(run: Run) -> int:

@@ -63,17 +63,22 @@ def write_view(path: Path, view: WorkingView, world_camera: Camera, launch: Laun
 def _pool(workers: int, device: str, jobs: list[Callable[[Launcher], None]], desc: str) -> None:
     """Run ``jobs`` over ``workers`` threads, each with its own launcher, with a progress bar."""
     init_warp((metaball_kernels,), device)
-    local = threading.local()
+    local, made = threading.local(), []
 
     def run(job):
         if not hasattr(local, "launch"):
             local.launch = Launcher(device, 1 if workers > 1 else 0)
+            made.append(local.launch)
         job(local.launch)
 
-    with ThreadPoolExecutor(workers) as pool, tqdm(total=len(jobs), desc=desc, unit="view") as bar:
-        for fut in [pool.submit(run, j) for j in jobs]:
-            fut.result()
-            bar.update()
+    try:
+        with ThreadPoolExecutor(workers) as pool, tqdm(total=len(jobs), desc=desc, unit="view") as bar:
+            for fut in [pool.submit(run, j) for j in jobs]:
+                fut.result()
+                bar.update()
+    finally:
+        for launch in made:
+            launch.close()
 
 
 def build_fluid_views(folder: Path, scene: str, frames: list[int], load: Callable[[int], np.ndarray], radius: float,

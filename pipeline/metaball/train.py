@@ -34,6 +34,7 @@ from pipeline.metaball.networks import (
     init_weights,
 )
 from pipeline.metaball.views import params_of
+from pipeline.model.data import rotate_quarter
 from pipeline.model.train import TimeLimitReached, TrainingError
 from pipeline.plots import metaball_curves
 
@@ -55,11 +56,9 @@ def augment(x: np.ndarray, y: np.ndarray, turns: int, mirror: bool) -> tuple[np.
     """A view (input 4 x H x W, encoded target 7 x H x W, both in [0, 1]) turned ``turns`` quarter turns
     anticlockwise and then mirrored left-right: the image as a camera rolled or mirrored would see it.
     The encoded normals turn with it ((x, y) -> (-y, x) a turn, x -> -x mirrored); empty stays 0."""
-    x, y = np.rot90(x, turns, axes=(1, 2)), np.rot90(y, turns, axes=(1, 2)).copy()
-    empty = y[4:7].max(axis=0) == 0
-    n = 2.0 * y[4:7] - 1.0
-    for _ in range(turns % 4):
-        n = np.stack([-n[1], n[0], n[2]])
+    empty = np.rot90(y[4:7].max(axis=0) == 0, turns)
+    n = rotate_quarter(2.0 * y[4:7] - 1.0, turns, (slice(0, 3),))
+    x, y = rotate_quarter(x, turns, ()), rotate_quarter(y, turns, ())
     if mirror:
         x, y, empty = x[:, :, ::-1], y[:, :, ::-1], empty[:, ::-1]
         n = n[:, :, ::-1] * np.array([-1.0, 1.0, 1.0])[:, None, None]
