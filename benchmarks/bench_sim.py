@@ -76,8 +76,13 @@ class KernelTimer:
     def __call__(self, kernel: Any, n: int, inputs: list[Any]) -> None:
         self._timed(kernel, lambda: self.launch(kernel, n, inputs))
 
-    def scatter(self, kernel: Any, blocks: list[tuple[int, int]], inputs: list[Any]) -> None:
-        self._timed(kernel, lambda: self.launch.scatter(kernel, blocks, inputs))
+    def scatter_passes(self, blocks: list[tuple[int, int]], passes: list[tuple[Any, list, Any, list]]) -> None:
+        # one pass at a time, each with its finish: a fused run shares the finish's hand-off with the next pass
+        for kernel, inputs, finish, finish_inputs in passes:
+            start = time.perf_counter()
+            self.launch.scatter_passes(blocks, [(kernel, inputs, finish, finish_inputs)])
+            wp.synchronize()
+            self.ms[f"{kernel.key} + {finish.key}"] += 1000 * (time.perf_counter() - start)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.launch, name)

@@ -2,8 +2,8 @@
 
 Warp runs a CPU launch on one core but releases the GIL, so launching disjoint chunks of a kernel's
 index range from a thread pool uses every core (1.6-2x measured on 2 cores). Kernels take the chunk
-``offset`` as their first argument and write only their own index, except under ``scatter``, which
-lets index i also write to (i, i + span]. On CUDA one launch covers all.
+``offset`` as their first argument and write only their own index, except under ``scatter_passes``,
+which lets index i also write to (i, i + span]. On CUDA one launch covers all.
 
 Each dispatch costs: ``wp.launch`` packs its arguments (about 60 us for 15 of them) and a thread
 pool hand-off adds about 100 us here. The calling thread therefore runs one chunk itself, and a
@@ -105,15 +105,26 @@ class Launcher:
         cmd.launch()
 
     def _run(self, tasks: list[tuple[int, int, list[Any]]], kernel: Any, slot_base: int = 0) -> None:
-        """Run (start, count, inputs) launches on the pool and the calling thread.
+        """Run (start, count, inputs) launches of one kernel on the pool and the calling thread."""
+        self._run_tasks([[(kernel, slot_base + k, start, count, inputs)]
+                         for k, (start, count, inputs) in enumerate(tasks)])
+
+    def _run_tasks(self, tasks: list[list[tuple[Any, int, int, int, list[Any]]]]) -> None:
+        """Run tasks, each a sequence of (kernel, slot, start, count, inputs) launches, on the pool and
+        the calling thread; a task's launches run in order on one thread.
 
         Threads take the next task as they come free, so a core that stalls (a busy neighbour on
         a shared host) holds up one small task rather than half of the work.
         """
-        tasks = [t for t in tasks if t[1] > 0]
+        tasks = [t for t in ([launch for launch in task if launch[3] > 0] for task in tasks) if t]
+
+        def run(task: list[tuple[Any, int, int, int, list[Any]]]) -> None:
+            for kernel, slot, start, count, inputs in task:
+                self._launch(kernel, slot, start, count, inputs)
+
         if self._pool is None or len(tasks) <= 1:
-            for k, (start, count, inputs) in enumerate(tasks):
-                self._launch(kernel, slot_base + k, start, count, inputs)
+            for task in tasks:
+                run(task)
             return
         counter = itertools.count()  # next() is atomic under the GIL
 
@@ -121,8 +132,7 @@ class Launcher:
             for k in counter:
                 if k >= len(tasks):
                     return
-                start, count, inputs = tasks[k]
-                self._launch(kernel, slot_base + k, start, count, inputs)
+                run(tasks[k])
 
         futures = [self._pool.submit(work) for _ in range(min(self.threads, len(tasks)) - 1)]
         work()
@@ -159,7 +169,7 @@ class Launcher:
         return len(chunks)
 
     def scatter_blocks(self, n: int, span: int, cumulative: np.ndarray | None = None) -> list[tuple[int, int]]:
-        """(start, count) blocks of [0, n) for ``scatter``: two per thread, each at least span + 1 long.
+        """(start, count) blocks of [0, n) for ``scatter_passes``: two per thread, each at least span + 1 long.
 
         With ``cumulative`` (a prefix sum of per-index work, length n + 1, such as the pair counts of
         a packed neighbour list) the cuts balance the work rather than the index count. The blocks
@@ -183,16 +193,38 @@ class Launcher:
             bounds[c] = min(bounds[c], bounds[c + 1] - gap)
         return [(bounds[c], bounds[c + 1] - bounds[c]) for c in range(count)]
 
-    def scatter(self, kernel: Any, blocks: list[tuple[int, int]], inputs: list[Any]) -> None:
-        """Launch a kernel whose index i also adds into indices (i, i + span], without races.
+    def scatter_passes(self, blocks: list[tuple[int, int]],
+                       passes: list[tuple[Any, list[Any], Any, list[Any]]]) -> None:
+        """Run scatter passes one after another, each (pair kernel, inputs, finish kernel, inputs): index
+        i of the pair kernel also adds into indices (i, i + span], and the finish kernel then turns a
+        block's completed sums into per-particle results, without races.
 
         ``blocks`` come from ``scatter_blocks``: each is at least span + 1 long, so a block writes
-        only into itself and the next one. The even blocks run concurrently, then the odd ones. On
-        CUDA one launch covers all and the kernel's atomic adds resolve the conflicts.
+        only into itself and the next one; the even blocks run concurrently, then the odd ones. A
+        block's sums are complete once it and the block before it have run, so an odd block
+        finishes right after its own pairs (the even blocks ran in the phase before), and an even
+        block finishes at the start of its task in the next pass's first phase: the next pass reads
+        only its own block and the next, both finished by then. Each pass thus costs two thread
+        hand-offs, not three, and the finish launch shares the block's warm cache. A finish that
+        clears its accumulators leaves them ready for the next pass. On CUDA (one block) each pass
+        is its pair launch, then its finish.
         """
-        self._load(kernel)
-        for base, phase in ((0, blocks[0::2]), (len(blocks), blocks[1::2])):
-            self._run([(start, count, inputs) for start, count in phase], kernel, base)
+        for kernel, _, finish, _ in passes:
+            self._load(kernel)
+            self._load(finish)
+        # chunk slots of the recorded launches: even blocks 0, 2, ..., odd blocks 1, 3, ...
+        even = [(2 * b, start, count) for b, (start, count) in enumerate(blocks[0::2])]
+        odd = [(2 * b + 1, start, count) for b, (start, count) in enumerate(blocks[1::2])]
+        finish_before: tuple[Any, list[Any]] | None = None
+        for kernel, inputs, finish, finish_inputs in passes:
+            head = [] if finish_before is None else [finish_before]
+            self._run_tasks([[(k, slot, start, count, args) for k, args in [*head, (kernel, inputs)]]
+                             for slot, start, count in even])
+            self._run_tasks([[(kernel, slot, start, count, inputs), (finish, slot, start, count, finish_inputs)]
+                             for slot, start, count in odd])
+            finish_before = (finish, finish_inputs)
+        if finish_before is not None:
+            self._run_tasks([[(finish_before[0], slot, start, count, finish_before[1])] for slot, start, count in even])
 
     def close(self) -> None:
         """Stop the thread pool and drop recorded launches."""

@@ -104,6 +104,7 @@ class PBFSolver:
         self.acc4 = wp.zeros(cap, dtype=wp.vec4, device=dev)
         self.acc1 = wp.zeros(cap, dtype=float, device=dev)
         self.acc3a, self.acc3b = vec(), vec()
+        self.omega_length = wp.zeros(cap, dtype=float, device=dev)
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
         # Dense grid of cells of width h over the container.
         extent = np.asarray(self.scene.domain_hi) - np.asarray(self.scene.domain_lo)
@@ -196,34 +197,32 @@ class PBFSolver:
                                            np.concatenate([[0], np.cumsum(counts)]))
 
         vol = self.mass / p.rest_density
+        # Each pass scatters pair sums, then finishes them per particle (``Launcher.scatter_passes``).
+        passes = []
         for it in range(p.iterations):
-            self.acc4.zero_()
-            self.acc1.zero_()
-            launch.scatter(K.density_pairs, blocks, [
-                self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
-                p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n,
-                self.pair, self.acc4, self.acc1])
-            launch(K.density_finish, n, [
-                self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
-                p.relaxation, self.lo, self.hi, self.wall_table, *obstacles,
-                self.particle_rho, self.particle_lambda, self.wall_grad])
-            self.acc3a.zero_()
-            launch.scatter(K.correction_pairs, blocks, [self.particle_lambda, *nb, self.pair, self.acc3a])
-            launch(K.correction_finish, n, [
-                self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds, *obstacles,
-                self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1), self.x_pred_other, self.v_tmp])
+            passes.append((
+                K.density_pairs, [self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
+                                  p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n, self.pair,
+                                  self.acc4, self.acc1],
+                K.density_finish, [self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
+                                   p.relaxation, self.lo, self.hi, self.wall_table, *obstacles,
+                                   self.particle_rho, self.particle_lambda, self.wall_grad]))
+            passes.append((
+                K.correction_pairs, [self.particle_lambda, *nb, self.pair, self.acc3a],
+                K.correction_finish, [self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds,
+                                      *obstacles, self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1),
+                                      self.x_pred_other, self.v_tmp]))
             self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
-
-        self.particle_omega.zero_()
-        launch.scatter(K.vorticity_pairs, blocks, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef,
-                                                   self.spiky_coef, vol, self.pair, self.particle_omega])
-        launch(K.vector_length, n, [self.particle_omega, self.acc1])
-        self.acc3a.zero_()
-        self.acc3b.zero_()
-        launch.scatter(K.viscosity_pairs, blocks, [self.v_tmp, self.acc1, self.particle_rho, *nb, self.mass,
-                                                   self.pair, self.acc3a, self.acc3b])
-        launch(K.viscosity_finish, n, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b,
-                                       p.vorticity_epsilon, p.xsph_viscosity, self.dt, self.particle_v])
+        passes.append((
+            K.vorticity_pairs, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol, self.pair,
+                                self.particle_omega],
+            K.vector_length, [self.particle_omega, self.omega_length]))
+        passes.append((
+            K.viscosity_pairs, [self.v_tmp, self.omega_length, self.particle_rho, *nb, self.mass, self.pair,
+                                self.acc3a, self.acc3b],
+            K.viscosity_finish, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b, p.vorticity_epsilon,
+                                 p.xsph_viscosity, self.dt, self.particle_v]))
+        launch.scatter_passes(blocks, passes)
         self.particle_x, self.x_pred = self.x_pred, self.particle_x
         self.step_index += 1
 
