@@ -61,50 +61,75 @@ def add_vec4(a: wp.array(dtype=wp.vec4), i: int, v: wp.vec4): ...
 
 
 # -- the pair loops (native) ------------------------------------------------------------------------
-# The loops over a particle's half list, written in C++ (``wp.func_native``): the same arithmetic,
-# in the same order, as the Warp loops they replace (bit for bit), which ran 15-30% slower per pair
-# in Warp's generated code. ``wp::atomic_add`` is a plain add on the CPU and an atomic on CUDA. The
-# pair's values follow ``pair_weights``: r = x_i - x_j, the spiky gradient g = grad_coef (h - |r|)^2
-# r / |r| and the poly6 value poly6_coef (h^2 - |r|^2)^3, both clamped to zero outside h.
-PAIR = """
-    const int j = idx[p];
-    const wp::vec3 r = xi - x[j];
-    const float r2 = wp::length_sq(r);
-    const float d = wp::max(h * h - r2, 0.0f);
-    const float rl = wp::max(wp::sqrt(r2), 1.0e-9f);
-    const float e = wp::max(h - rl, 0.0f);
-    const wp::vec3 g = r * (grad_coef * e * e / rl);
-    const float w = poly6_coef * d * d * d;
+# The loops over a particle's half list, written in C++ (``wp.func_native``). ``wp::atomic_add`` is a
+# plain add on the CPU and an atomic on CUDA. The pair's values follow ``pair_weights``: r = x_i - x_j,
+# the spiky gradient g = grad_coef (h - |r|)^2 r / |r| and the poly6 value poly6_coef (h^2 - |r|^2)^3,
+# both clamped to zero outside h. The density and vorticity loops take a particle's pairs in
+# groups of ``GROUP``: a first loop computes the group's gradients and values into small local
+# arrays, without sums or scatters, which the CPU compiler vectorises (eight square roots and
+# divisions at once); a second loop then adds them up and scatters them in list order. Every value
+# is the same IEEE operation on the same operands in either form, so the results are bit for bit
+# those of one scalar loop (and of the Warp loops these replace, which ran 15-30% slower per pair).
+GROUP = 16
+PAIR_VALUES = f"""
+const wp::vec3* x = x_pred.data;
+const int* idx = neighbour_index.data;
+const wp::vec3 xi = x[i];
+const float hh = h * h;
+float g0[{GROUP}], g1[{GROUP}], g2[{GROUP}], wv[{GROUP}];
+const int last = neighbour_end.data[i];
+for (int p0 = neighbour_start.data[i]; p0 < last; p0 += {GROUP}) {{
+    const int m = wp::min(last - p0, {GROUP});
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width(8) interleave(disable)
+#endif
+    for (int q = 0; q < m; ++q) {{
+        const int j = idx[p0 + q];
+        const float r0 = xi.c[0] - x[j].c[0];
+        const float r1 = xi.c[1] - x[j].c[1];
+        const float r2_ = xi.c[2] - x[j].c[2];
+        const float r2 = wp::length_sq(wp::vec3(r0, r1, r2_));
+        const float d = wp::max(hh - r2, 0.0f);
+        const float rl = wp::max(wp::sqrt(r2), 1.0e-9f);
+        const float e = wp::max(h - rl, 0.0f);
+        const float f = grad_coef * e * e / rl;
+        g0[q] = r0 * f;
+        g1[q] = r1 * f;
+        g2[q] = r2_ * f;
+        wv[q] = poly6_coef * d * d * d;
+    }}
+    for (int q = 0; q < m; ++q) {{
+        const int p = p0 + q;
+        const int j = idx[p];
+        const wp::vec3 g(g0[q], g1[q], g2[q]);
+        const float w = wv[q];
 """
 
 
 @wp.func_native(f"""
-const wp::vec3* x = x_pred.data;
-const int* idx = neighbour_index.data;
-const wp::vec3 xi = x[i];
 wp::vec4 own(0.0f);
 float own_sq = 0.0f;
-for (int p = neighbour_start.data[i], last = neighbour_end.data[i]; p < last; ++p) {{
-{PAIR}
-    const float gg = wp::dot(g, g);
-    const float mw = mass * w;
-    own += wp::vec4(g[0], g[1], g[2], mw);
-    own_sq += gg;
-    wp::atomic_add(acc.data + j, wp::vec4(-g[0], -g[1], -g[2], mw));
-    wp::atomic_add(acc_sq.data + j, gg);
-    float scorr = 0.0f;
-    if (corr_k > 0.0f) {{
-        const float ratio = w * inv_corr_w_dq;
-        if (corr_n == 4) {{
-            const float ratio2 = ratio * ratio;
-            scorr = -corr_k * ratio2 * ratio2;
-        }} else {{
-            scorr = 1.0f;
-            for (int k = 0; k < corr_n; ++k) scorr = scorr * ratio;
-            scorr = -corr_k * scorr;
+{PAIR_VALUES}
+        const float gg = wp::dot(g, g);
+        const float mw = mass * w;
+        own += wp::vec4(g[0], g[1], g[2], mw);
+        own_sq += gg;
+        wp::atomic_add(acc.data + j, wp::vec4(-g[0], -g[1], -g[2], mw));
+        wp::atomic_add(acc_sq.data + j, gg);
+        float scorr = 0.0f;
+        if (corr_k > 0.0f) {{
+            const float ratio = w * inv_corr_w_dq;
+            if (corr_n == 4) {{
+                const float ratio2 = ratio * ratio;
+                scorr = -corr_k * ratio2 * ratio2;
+            }} else {{
+                scorr = 1.0f;
+                for (int k = 0; k < corr_n; ++k) scorr = scorr * ratio;
+                scorr = -corr_k * scorr;
+            }}
         }}
+        pair.data[p] = wp::vec4(g[0], g[1], g[2], scorr);
     }}
-    pair.data[p] = wp::vec4(g[0], g[1], g[2], scorr);
 }}
 wp::atomic_add(acc.data + i, own);
 wp::atomic_add(acc_sq.data + i, own_sq);
@@ -140,18 +165,15 @@ def correction_pair_loop(i: int, particle_lambda: wp.array(dtype=float), neighbo
 
 
 @wp.func_native(f"""
-const wp::vec3* x = x_pred.data;
 const wp::vec3* v = particle_v.data;
-const int* idx = neighbour_index.data;
-const wp::vec3 xi = x[i];
 const wp::vec3 vi = v[i];
 wp::vec3 own(0.0f);
-for (int p = neighbour_start.data[i], last = neighbour_end.data[i]; p < last; ++p) {{
-{PAIR}
-    const wp::vec3 term = wp::cross(v[j] - vi, -g) * vol;
-    own += term;
-    wp::atomic_add(acc_omega.data + j, term);
-    pair.data[p] = wp::vec4(g[0], g[1], g[2], w);
+{PAIR_VALUES}
+        const wp::vec3 term = wp::cross(v[j] - vi, -g) * vol;
+        own += term;
+        wp::atomic_add(acc_omega.data + j, term);
+        pair.data[p] = wp::vec4(g[0], g[1], g[2], w);
+    }}
 }}
 wp::atomic_add(acc_omega.data + i, own);
 """)
