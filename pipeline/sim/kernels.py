@@ -9,8 +9,9 @@ Every kernel takes ``offset`` first: the host launches chunks of the index range
 pool (Warp releases the GIL and runs a CPU launch on one core). The neighbour list is a half list
 (each pair once, at its lower index); the ``*_pairs`` kernels add each pair's share to both of its
 particles, which on the CPU is race-free (and order-fixed) under the two-phase block launch of
-``Launcher.scatter`` and on CUDA uses atomics, whose float sums land in any order (GPU runs agree
-to rounding only). ``*_finish`` kernels then turn the sums into per-particle results.
+``Launcher.scatter_passes`` and on CUDA uses atomics, whose float sums land in any order (GPU runs
+agree to rounding only). ``*_finish`` kernels then turn a block's sums into per-particle results
+and clear them for the next pass.
 Kernels are kept apart from the driver so that editing the driver does not recompile them.
 """
 
@@ -19,52 +20,25 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
-# Unchecked element access for the pair loops. Warp's a[i] wraps negative indices (a shift, an
-# and and an add per access); these loops index arrays tens of millions of times per step with
-# indices known to be valid, and the plain pointer access measured 16% faster on the density
-# pass, bit for bit the same result. Contiguous 1D arrays only (every array here is).
-# ``wp::atomic_add`` is a plain add on the CPU and an atomic on CUDA.
-@wp.func_native("return a.data[i];")
-def load_int(a: wp.array(dtype=int), i: int) -> int: ...
-
-
-@wp.func_native("return a.data[i];")
-def load_float(a: wp.array(dtype=float), i: int) -> float: ...
-
-
+# Unchecked element access for the neighbour search. Warp's a[i] wraps negative indices (a shift,
+# an and and an add per access); the search indexes arrays tens of millions of times per step with
+# indices known to be valid, and the plain pointer access measured 16% faster on the pair loops,
+# bit for bit the same result. Contiguous 1D arrays only (every array here is).
 @wp.func_native("return a.data[i];")
 def load_vec3(a: wp.array(dtype=wp.vec3), i: int) -> wp.vec3: ...
-
-
-@wp.func_native("return a.data[i];")
-def load_vec4(a: wp.array(dtype=wp.vec4), i: int) -> wp.vec4: ...
 
 
 @wp.func_native("a.data[i] = v;")
 def store_int(a: wp.array(dtype=int), i: int, v: int): ...
 
 
-@wp.func_native("a.data[i] = v;")
-def store_vec4(a: wp.array(dtype=wp.vec4), i: int, v: wp.vec4): ...
-
-
-@wp.func_native("wp::atomic_add(a.data + i, v);")
-def add_float(a: wp.array(dtype=float), i: int, v: float): ...
-
-
-@wp.func_native("wp::atomic_add(a.data + i, v);")
-def add_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
-
-
-@wp.func_native("wp::atomic_add(a.data + i, v);")
-def add_vec4(a: wp.array(dtype=wp.vec4), i: int, v: wp.vec4): ...
-
-
 # -- the pair loops (native) ------------------------------------------------------------------------
 # The loops over a particle's half list, written in C++ (``wp.func_native``). ``wp::atomic_add`` is a
-# plain add on the CPU and an atomic on CUDA. The pair's values follow ``pair_weights``: r = x_i - x_j,
-# the spiky gradient g = grad_coef (h - |r|)^2 r / |r| and the poly6 value poly6_coef (h^2 - |r|^2)^3,
-# both clamped to zero outside h. The density and vorticity loops take a particle's pairs in
+# plain add on the CPU and an atomic on CUDA. A pair's values, for r = x_i - x_j: the spiky gradient
+# g = grad_coef (h - |r|)^2 r / |r| (grad_coef = -45 / (pi h^6), times a volume where wanted) and the
+# poly6 value poly6_coef (h^2 - |r|^2)^3. Pairs come from the neighbour list, so they are almost
+# always inside h; the clamps keep a pair that left h during the solver iterations at zero, and
+# coincident particles give a zero gradient. The density and vorticity loops take a particle's pairs in
 # groups of ``GROUP``: a first loop computes the group's gradients and values into small local
 # arrays, without sums or scatters, which the CPU compiler vectorises (eight square roots and
 # divisions at once); a second loop then adds them up and scatters them in list order. Every value
@@ -217,24 +191,6 @@ def viscosity_pair_loop(i: int, particle_v: wp.array(dtype=wp.vec3), omega_lengt
                         acc_visc: wp.array(dtype=wp.vec3)):
     """``viscosity_pairs``' loop over particle i's half list."""
     ...
-
-
-@wp.func
-def pair_weights(r: wp.vec3, h: float, poly6_coef: float, grad_coef: float) -> wp.vec4:
-    """Spiky gradient and poly6 value of one pair, (grad xyz, W), without branches.
-
-    Poly6 W(r) = poly6_coef (h^2 - r^2)^3 with poly6_coef = 315 / (64 pi h^9); the spiky gradient
-    is grad_coef (h - |r|)^2 r / |r| with grad_coef = -45 / (pi h^6) (times a volume if wanted).
-    Pairs come from the neighbour list, so they are almost always inside h; the clamps keep a
-    pair that left h during the solver iterations at zero, and coincident particles give a zero
-    gradient. Branch-free, it measured faster than the branching form.
-    """
-    r2 = wp.length_sq(r)
-    d = wp.max(h * h - r2, 0.0)
-    rl = wp.max(wp.sqrt(r2), 1.0e-9)
-    e = wp.max(h - rl, 0.0)
-    g = r * (grad_coef * e * e / rl)
-    return wp.vec4(g[0], g[1], g[2], poly6_coef * d * d * d)
 
 
 @wp.func
@@ -472,10 +428,10 @@ def find_neighbours(
     reach: int,
     h: float,
     max_neighbours: int,
-    neighbour_count: wp.array(dtype=int),
-    neighbour_slots: wp.array(dtype=int),
-    neighbour_span: wp.array(dtype=int),
+    packed: int,
     cursor: wp.array(dtype=int),
+    neighbour_count: wp.array(dtype=int),
+    neighbour_span: wp.array(dtype=int),
     neighbour_start: wp.array(dtype=int),
     neighbour_end: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
@@ -488,6 +444,11 @@ def find_neighbours(
     dz > 0, or dz = 0 and dy > 0, plus the rest of k's own row; each row of cells is one
     contiguous index range. neighbour_span[k] is the largest j - k (indices come out ascending),
     which bounds how far a pass that writes to j reaches past k.
+
+    ``packed`` (the CPU, where a chunk runs its indices in order): each chunk writes its lists one
+    after another into its own region (chunk offset x max_neighbours), so a pair pass streams
+    through memory (35% faster per pass than fixed slots); otherwise (CUDA) each particle has
+    max_neighbours slots of its own.
     """
     k = wp.tid() + offset
     xk = x_pred[k]
@@ -496,6 +457,8 @@ def find_neighbours(
     x1 = wp.min(c[0] + reach, dims[0] - 1)
     h2 = h * h
     base = k * max_neighbours
+    if packed != 0:
+        base = offset * max_neighbours + cursor[offset]
     count = int(0)
     last = k
     for dz in range(0, reach + 1):
@@ -512,20 +475,15 @@ def find_neighbours(
                 for j in range(first, cell_start[row + x1 + 1]):
                     if wp.length_sq(load_vec3(x_pred, j) - xk) < h2:
                         if count < max_neighbours:
-                            store_int(neighbour_slots, base + count, j)
+                            store_int(neighbour_index, base + count, j)
                             count += 1
                             last = j
+    if packed != 0:
+        cursor[offset] = cursor[offset] + count
     neighbour_count[k] = count
     neighbour_span[k] = last - k
-    # Pack the list: reserve count entries in this chunk's region (chunk offset x capacity) and
-    # copy the slots there while they are in cache. On the CPU a chunk runs its indices in order,
-    # so the packed lists follow particle order and a pair pass streams through memory (35%
-    # faster per pass than reading fixed-size slots); on CUDA the atomic keeps it correct.
-    b = offset * max_neighbours + wp.atomic_add(cursor, offset, count)
-    for s in range(count):
-        store_int(neighbour_index, b + s, load_int(neighbour_slots, base + s))
-    neighbour_start[k] = b
-    neighbour_end[k] = b + count
+    neighbour_start[k] = base
+    neighbour_end[k] = base + count
 
 
 @wp.kernel

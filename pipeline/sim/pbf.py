@@ -93,7 +93,6 @@ class PBFSolver:
         self.order = wp.zeros(2 * cap, dtype=int, device=dev)
         self.neighbour_count = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_span = wp.zeros(cap, dtype=int, device=dev)
-        self.neighbour_slots = wp.zeros(cap * nb, dtype=int, device=dev)
         self.neighbour_start = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_end = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_cursor = wp.zeros(cap, dtype=int, device=dev)
@@ -184,8 +183,8 @@ class PBFSolver:
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
         self.neighbour_cursor.zero_()
         launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
-                                      self.neighbour_count, self.neighbour_slots, self.neighbour_span,
-                                      self.neighbour_cursor, self.neighbour_start, self.neighbour_end,
+                                      int(launch.cpu), self.neighbour_cursor, self.neighbour_count,
+                                      self.neighbour_span, self.neighbour_start, self.neighbour_end,
                                       self.neighbour_index])
         nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
         # Blocks for the pair passes: how far past itself a particle's pairs reach bounds their
