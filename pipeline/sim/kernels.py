@@ -45,12 +45,17 @@ def store_int(a: wp.array(dtype=int), i: int, v: int): ...
 # is the same IEEE operation on the same operands in either form, so the results are bit for bit
 # those of one scalar loop (and of the Warp loops these replace, which ran 15-30% slower per pair).
 GROUP = 16
-PAIR_VALUES = f"""
+
+
+def pair_values(extra: str = "") -> str:
+    """The two loops over a group of pairs, open at the second loop's body (with j, p, g and w);
+    ``extra`` adds lines to the vectorised loop, which may fill the spare group array ``sv``."""
+    return f"""
 const wp::vec3* x = x_pred.data;
 const int* idx = neighbour_index.data;
 const wp::vec3 xi = x[i];
 const float hh = h * h;
-float g0[{GROUP}], g1[{GROUP}], g2[{GROUP}], wv[{GROUP}];
+float g0[{GROUP}], g1[{GROUP}], g2[{GROUP}], wv[{GROUP}], sv[{GROUP}];
 const int last = neighbour_end.data[i];
 for (int p0 = neighbour_start.data[i]; p0 < last; p0 += {GROUP}) {{
     const int m = wp::min(last - p0, {GROUP});
@@ -71,6 +76,7 @@ for (int p0 = neighbour_start.data[i]; p0 < last; p0 += {GROUP}) {{
         g1[q] = r1 * f;
         g2[q] = r2_ * f;
         wv[q] = poly6_coef * d * d * d;
+{extra}
     }}
     for (int q = 0; q < m; ++q) {{
         const int p = p0 + q;
@@ -79,11 +85,18 @@ for (int p0 = neighbour_start.data[i]; p0 < last; p0 += {GROUP}) {{
         const float w = wv[q];
 """
 
+# the artificial pressure for the default n = 4, s = -k (W / W(dq))^4, computed for every pair
+# (used where k > 0 and n = 4)
+QUARTIC = """
+        const float ratio = wv[q] * inv_corr_w_dq;
+        const float ratio2 = ratio * ratio;
+        sv[q] = -corr_k * ratio2 * ratio2;"""
+
 
 @wp.func_native(f"""
 wp::vec4 own(0.0f);
 float own_sq = 0.0f;
-{PAIR_VALUES}
+{pair_values(QUARTIC)}
         const float gg = wp::dot(g, g);
         const float mw = mass * w;
         own += wp::vec4(g[0], g[1], g[2], mw);
@@ -94,8 +107,7 @@ float own_sq = 0.0f;
         if (corr_k > 0.0f) {{
             const float ratio = w * inv_corr_w_dq;
             if (corr_n == 4) {{
-                const float ratio2 = ratio * ratio;
-                scorr = -corr_k * ratio2 * ratio2;
+                scorr = sv[q];
             }} else {{
                 scorr = 1.0f;
                 for (int k = 0; k < corr_n; ++k) scorr = scorr * ratio;
@@ -142,7 +154,7 @@ def correction_pair_loop(i: int, particle_lambda: wp.array(dtype=float), neighbo
 const wp::vec3* v = particle_v.data;
 const wp::vec3 vi = v[i];
 wp::vec3 own(0.0f);
-{PAIR_VALUES}
+{pair_values()}
         const wp::vec3 term = wp::cross(v[j] - vi, -g) * vol;
         own += term;
         wp::atomic_add(acc_omega.data + j, term);
@@ -162,18 +174,18 @@ def vorticity_pair_loop(i: int, x_pred: wp.array(dtype=wp.vec3), particle_v: wp.
 @wp.func_native("""
 const wp::vec3* v = particle_v.data;
 const float* wl = omega_length.data;
-const float* rho = particle_rho.data;
+const float* vol = particle_vol.data;
 const int* idx = neighbour_index.data;
 const wp::vec3 vi = v[i];
 const float wi = wl[i];
-const float voli = mass / rho[i];
+const float voli = vol[i];
 wp::vec3 own_eta(0.0f);
 wp::vec3 own_visc(0.0f);
 for (int p = neighbour_start.data[i], last = neighbour_end.data[i]; p < last; ++p) {
     const int j = idx[p];
     const wp::vec4 q = pair.data[p];
     const wp::vec3 g = wp::vec3(q[0], q[1], q[2]);
-    const float volj = mass / rho[j];
+    const float volj = vol[j];
     const float dw = wl[j] - wi;
     const wp::vec3 dv = v[j] - vi;
     own_eta += g * (dw * volj);
@@ -185,8 +197,8 @@ wp::atomic_add(acc_eta.data + i, own_eta);
 wp::atomic_add(acc_visc.data + i, own_visc);
 """)
 def viscosity_pair_loop(i: int, particle_v: wp.array(dtype=wp.vec3), omega_length: wp.array(dtype=float),
-                        particle_rho: wp.array(dtype=float), neighbour_start: wp.array(dtype=int),
-                        neighbour_end: wp.array(dtype=int), neighbour_index: wp.array(dtype=int), mass: float,
+                        particle_vol: wp.array(dtype=float), neighbour_start: wp.array(dtype=int),
+                        neighbour_end: wp.array(dtype=int), neighbour_index: wp.array(dtype=int),
                         pair: wp.array(dtype=wp.vec4), acc_eta: wp.array(dtype=wp.vec3),
                         acc_visc: wp.array(dtype=wp.vec3)):
     """``viscosity_pairs``' loop over particle i's half list."""
@@ -630,10 +642,12 @@ def vorticity_pairs(
 
 
 @wp.kernel
-def vector_length(offset: int, src: wp.array(dtype=wp.vec3), dst: wp.array(dtype=float)):
-    """dst[i] = |src[i]|."""
+def vorticity_finish(offset: int, omega: wp.array(dtype=wp.vec3), particle_rho: wp.array(dtype=float), mass: float,
+                     omega_length: wp.array(dtype=float), particle_vol: wp.array(dtype=float)):
+    """|omega_i| and the particle volume V_i = m / rho_i, both read per pair by the viscosity pass."""
     i = wp.tid() + offset
-    dst[i] = wp.length(src[i])
+    omega_length[i] = wp.length(omega[i])
+    particle_vol[i] = mass / particle_rho[i]
 
 
 @wp.kernel
@@ -641,18 +655,17 @@ def viscosity_pairs(
     offset: int,
     particle_v: wp.array(dtype=wp.vec3),
     omega_length: wp.array(dtype=float),
-    particle_rho: wp.array(dtype=float),
+    particle_vol: wp.array(dtype=float),
     neighbour_start: wp.array(dtype=int),
     neighbour_end: wp.array(dtype=int),
     neighbour_index: wp.array(dtype=int),
-    mass: float,
     pair: wp.array(dtype=wp.vec4),
     acc_eta: wp.array(dtype=wp.vec3),
     acc_visc: wp.array(dtype=wp.vec3),
 ):
     """eta_i = sum_j V_j grad W_ij (|omega_j| - |omega_i|) and XSPH sum_j V_j (v_j - v_i) W_ij, both ends."""
-    viscosity_pair_loop(wp.tid() + offset, particle_v, omega_length, particle_rho, neighbour_start, neighbour_end,
-                        neighbour_index, mass, pair, acc_eta, acc_visc)
+    viscosity_pair_loop(wp.tid() + offset, particle_v, omega_length, particle_vol, neighbour_start, neighbour_end,
+                        neighbour_index, pair, acc_eta, acc_visc)
 
 
 @wp.kernel

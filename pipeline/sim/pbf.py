@@ -104,6 +104,7 @@ class PBFSolver:
         self.acc1 = wp.zeros(cap, dtype=float, device=dev)
         self.acc3a, self.acc3b = vec(), vec()
         self.omega_length = wp.zeros(cap, dtype=float, device=dev)
+        self.particle_vol = wp.zeros(cap, dtype=float, device=dev)
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
         # Dense grid of cells of width h over the container.
         extent = np.asarray(self.scene.domain_hi) - np.asarray(self.scene.domain_lo)
@@ -215,10 +216,11 @@ class PBFSolver:
         passes.append((
             K.vorticity_pairs, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol, self.pair,
                                 self.particle_omega],
-            K.vector_length, [self.particle_omega, self.omega_length]))
+            K.vorticity_finish, [self.particle_omega, self.particle_rho, self.mass, self.omega_length,
+                                 self.particle_vol]))
         passes.append((
-            K.viscosity_pairs, [self.v_tmp, self.omega_length, self.particle_rho, *nb, self.mass, self.pair,
-                                self.acc3a, self.acc3b],
+            K.viscosity_pairs, [self.v_tmp, self.omega_length, self.particle_vol, *nb, self.pair, self.acc3a,
+                                self.acc3b],
             K.viscosity_finish, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b, p.vorticity_epsilon,
                                  p.xsph_viscosity, self.dt, self.particle_v]))
         launch.scatter_passes(blocks, passes)
