@@ -429,6 +429,45 @@ def gather_state(
     id_out[k] = particle_id[src]
 
 
+@wp.func_native("""
+const wp::vec3* x = x_pred.data;
+const int* cs = cell_start.data;
+int* out = neighbour_index.data + base;
+const wp::vec3 xk = x[k];
+const float h2 = h * h;
+const int x0 = wp::max(c.c[0] - reach, 0);
+const int x1 = wp::min(c.c[0] + reach, dims.c[0] - 1);
+int count = 0, last = k;
+for (int dz = 0; dz <= reach; ++dz) {
+    const int z = c.c[2] + dz;
+    if (z >= dims.c[2]) break;
+    const int y_first = wp::max(dz == 0 ? c.c[1] : c.c[1] - reach, 0);
+    const int y_last = wp::min(c.c[1] + reach, dims.c[1] - 1);
+    for (int y = y_first; y <= y_last; ++y) {
+        const int row = (z * dims.c[1] + y) * dims.c[0];
+        const int first = (dz == 0 && y == c.c[1]) ? k + 1 : cs[row + x0];
+        const int end = cs[row + x1 + 1];
+        for (int j = first; j < end; ++j) {
+            const wp::vec3 d = x[j] - xk;
+            if (wp::length_sq(d) < h2 && count < max_neighbours) {
+                out[count++] = j;
+                last = j;
+            }
+        }
+    }
+}
+return wp::vec2i(count, last);
+""")
+def upper_neighbours(k: int, x_pred: wp.array(dtype=wp.vec3), cell_start: wp.array(dtype=int), c: wp.vec3i,
+                     dims: wp.vec3i, reach: int, h: float, max_neighbours: int, neighbour_index: wp.array(dtype=int),
+                     base: int) -> wp.vec2i:
+    """``find_neighbours``' scan: the particles j > k within h, written to neighbour_index[base...] in
+    ascending order; returns (count, last j). Native: 10% faster than the same loops in Warp, the
+    same lists. Trimming each row to the sphere (the row's nearest point bounds the x range) tests
+    a fifth fewer candidates but measured 10% slower, in Warp and here: the rows are short."""
+    ...
+
+
 @wp.kernel
 def find_neighbours(
     offset: int,
@@ -463,33 +502,13 @@ def find_neighbours(
     max_neighbours slots of its own.
     """
     k = wp.tid() + offset
-    xk = x_pred[k]
-    c = cell_coord(xk, lo, inv_cell, dims)
-    x0 = wp.max(c[0] - reach, 0)
-    x1 = wp.min(c[0] + reach, dims[0] - 1)
-    h2 = h * h
+    c = cell_coord(x_pred[k], lo, inv_cell, dims)
     base = k * max_neighbours
     if packed != 0:
         base = offset * max_neighbours + cursor[offset]
-    count = int(0)
-    last = k
-    for dz in range(0, reach + 1):
-        z = c[2] + dz
-        if z < dims[2]:
-            y_first = c[1] - reach
-            if dz == 0:
-                y_first = c[1]
-            for y in range(wp.max(y_first, 0), wp.min(c[1] + reach, dims[1] - 1) + 1):
-                row = (z * dims[1] + y) * dims[0]
-                first = cell_start[row + x0]
-                if dz == 0 and y == c[1]:
-                    first = k + 1
-                for j in range(first, cell_start[row + x1 + 1]):
-                    if wp.length_sq(load_vec3(x_pred, j) - xk) < h2:
-                        if count < max_neighbours:
-                            store_int(neighbour_index, base + count, j)
-                            count += 1
-                            last = j
+    found = upper_neighbours(k, x_pred, cell_start, c, dims, reach, h, max_neighbours, neighbour_index, base)
+    count = found[0]
+    last = found[1]
     if packed != 0:
         cursor[offset] = cursor[offset] + count
     neighbour_count[k] = count
