@@ -3,8 +3,9 @@
 Each step: predict under gravity, cell sort (particles are reordered into grid order so a
 neighbour walk touches nearby memory), one half neighbour list (each pair once), ``iterations``
 density-constraint solves with collision projection, then velocity from the position change,
-vorticity confinement and XSPH viscosity. Pair passes scatter to both particles of a pair
-(``Launcher.scatter``) and a per-particle pass finishes each quantity. Emitters add layers of
+vorticity confinement and XSPH viscosity. Pair passes scatter to both particles of a pair and a
+per-particle pass finishes each quantity, the two fused block by block (``Launcher.scatter_passes``:
+two thread hand-offs per pass, no zeroing passes). Emitters add layers of
 particles on a schedule fixed by the step index, so a run resumed from a saved frame continues
 exactly as an uninterrupted one.
 """
