@@ -258,3 +258,44 @@ def test_thread_counts_agree():
         solver.close()
     np.testing.assert_allclose(runs[0][0], runs[1][0], atol=1e-4)  # 1% of a radius
     np.testing.assert_allclose(runs[0][1], runs[1][1], atol=1e-2)
+
+
+def _half_lists(solver: PBFSolver) -> list[np.ndarray]:
+    n = solver.n
+    start, end = solver.neighbour_start.numpy()[:n], solver.neighbour_end.numpy()[:n]
+    index = solver.neighbour_index.numpy()
+    return [index[a:b].copy() for a, b in zip(start, end, strict=True)]
+
+
+@pytest.mark.parametrize("max_neighbours", [64, 10])
+def test_neighbour_lists_are_the_pairs_within_h_with_either_scan(max_neighbours):
+    # A falling column, two threads (two chunks writing their own packed regions). Each list must
+    # hold the particles j > k within h in ascending order; capped at max_neighbours, the first
+    # ones of that order. The vector (AVX-512, where the CPU has it) and scalar row scans must
+    # build the same lists, and so the same step.
+    scene = _scene(fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.15, 0.3, 0.2)),))
+    params = SimulateConfig(particle_radius=0.0125, frames=1, threads=2, max_neighbours=max_neighbours)
+    lists, states = [], []
+    for vector in (True, False):
+        solver = PBFSolver(scene, params, "cpu", seed=1)
+        solver.step()  # a step, so the search runs on sorted, moving particles
+        solver.vector_scan = vector
+        solver.predict_and_search()
+        x = solver.x_pred.numpy()[:solver.n].copy()
+        lists.append(_half_lists(solver))
+        solver.step()
+        states.append(solver.state())
+        solver.close()
+    x = x.astype(np.float32)
+    h2 = np.float32(solver.h) ** 2
+    capped = 0
+    for k, near in enumerate(cKDTree(x).query_ball_point(x, 1.01 * solver.h)):
+        near = np.array(sorted(j for j in near if j > k), dtype=np.int64)
+        d = x[near] - x[k] if len(near) else np.zeros((0, 3), np.float32)
+        expect = near[d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2] < h2]
+        capped += len(expect) > max_neighbours
+        np.testing.assert_array_equal(lists[0][k], expect[:max_neighbours], err_msg=f"particle {k}")
+        np.testing.assert_array_equal(lists[1][k], lists[0][k])
+    assert (capped > 0) == (max_neighbours < 30), "the small cap must actually cut lists, the large one none"
+    for a, b in zip(states[0], states[1], strict=True):
+        np.testing.assert_array_equal(a, b)

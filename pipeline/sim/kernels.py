@@ -429,6 +429,62 @@ def gather_state(
     id_out[k] = particle_id[src]
 
 
+# The row scan of the neighbour search, 16 candidates at a time with AVX-512 (F and DQ; the CPU
+# compiler targets the host): load the candidates' coordinates under a mask, de-interleave them,
+# test all 16 distances at once and compress the hits' indices into the list. The scalar loop
+# branches on every candidate, about one in four a hit, and its mispredictions cost more than the
+# tests: the vector scan measured 2.2x faster (8.7 -> 3.9 ms per step of the benchmark), the same
+# lists. Defines ``SCAN_ROW(first, end)`` for the search below; without AVX-512 (or on CUDA) it is
+# the scalar loop, which ``vector_scan = 0`` also selects at run time.
+ROW_SCAN = """
+#if defined(__AVX512F__) && defined(__AVX512DQ__) && !defined(__CUDA_ARCH__)
+typedef float v16f __attribute__((ext_vector_type(16)));
+typedef int v16i __attribute__((ext_vector_type(16)));
+const v16f zero_f = 0.0f;
+const v16i zero_i = 0;
+const v16i lanes = (v16i){0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+auto lane_mask = [](int n) -> unsigned short {
+    return n <= 0 ? 0 : n >= 16 ? 0xFFFF : static_cast<unsigned short>((1u << n) - 1u);
+};
+auto scan_vector = [&](int first, int end) {
+    for (int j0 = first; j0 < end; j0 += 16) {
+        const int m = wp::min(end - j0, 16);
+        const float* p = reinterpret_cast<const float*>(x + j0);
+        const v16f a = __builtin_ia32_loadups512_mask(p, zero_f, lane_mask(3 * m));
+        const v16f b = __builtin_ia32_loadups512_mask(p + 16, zero_f, lane_mask(3 * m - 16));
+        const v16f e = __builtin_ia32_loadups512_mask(p + 32, zero_f, lane_mask(3 * m - 32));
+        const v16f px = __builtin_shufflevector(__builtin_shufflevector(a, b, 0, 3, 6, 9, 12, 15, 18, 21, 24,
+            27, 30, -1, -1, -1, -1, -1), e, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 17, 20, 23, 26, 29);
+        const v16f py = __builtin_shufflevector(__builtin_shufflevector(a, b, 1, 4, 7, 10, 13, 16, 19, 22, 25,
+            28, 31, -1, -1, -1, -1, -1), e, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 18, 21, 24, 27, 30);
+        const v16f pz = __builtin_shufflevector(__builtin_shufflevector(a, b, 2, 5, 8, 11, 14, 17, 20, 23, 26,
+            29, -1, -1, -1, -1, -1, -1), e, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 16, 19, 22, 25, 28, 31);
+        // x[j] - x_k and its squared length: the scalar loop's operations, lane by lane
+        const v16f d0 = px - xk.c[0];
+        const v16f d1 = py - xk.c[1];
+        const v16f d2 = pz - xk.c[2];
+        const v16i hit = (d0 * d0 + d1 * d1 + d2 * d2 < h2) & (lanes < m);
+        const unsigned short found = __builtin_ia32_cvtd2mask512(hit);
+        if (count + 16 <= max_neighbours) {
+            // compress in a register and store all 16 lanes: the lanes past the hits fall inside
+            // this particle's max_neighbours slots and are overwritten or ignored (a compressing
+            // store to memory is microcoded and measured 1.6x slower than the scalar loop)
+            const v16i hits = __builtin_ia32_compresssi512_mask(lanes + j0, zero_i, found);
+            __builtin_memcpy(out + count, &hits, sizeof(hits));
+            count += __builtin_popcount(found);
+        } else {
+            for (int q = 0; q < m && count < max_neighbours; ++q)
+                if ((found >> q) & 1) out[count++] = j0 + q;
+        }
+    }
+};
+#define SCAN_ROW(first, end) if (vector_scan) scan_vector(first, end); else SCAN_SCALAR(first, end)
+#else
+#define SCAN_ROW(first, end) SCAN_SCALAR(first, end)
+#endif
+"""
+
+
 @wp.func_native("""
 const wp::vec3* x = x_pred.data;
 const int* cs = cell_start.data;
@@ -437,7 +493,11 @@ const wp::vec3 xk = x[k];
 const float h2 = h * h;
 const int x0 = wp::max(c.c[0] - reach, 0);
 const int x1 = wp::min(c.c[0] + reach, dims.c[0] - 1);
-int count = 0, last = k;
+int count = 0;
+#define SCAN_SCALAR(first, end) \\
+    for (int j = first; j < end; ++j) \\
+        if (wp::length_sq(x[j] - xk) < h2 && count < max_neighbours) out[count++] = j;
+""" + ROW_SCAN + """
 for (int dz = 0; dz <= reach; ++dz) {
     const int z = c.c[2] + dz;
     if (z >= dims.c[2]) break;
@@ -447,24 +507,21 @@ for (int dz = 0; dz <= reach; ++dz) {
         const int row = (z * dims.c[1] + y) * dims.c[0];
         const int first = (dz == 0 && y == c.c[1]) ? k + 1 : cs[row + x0];
         const int end = cs[row + x1 + 1];
-        for (int j = first; j < end; ++j) {
-            const wp::vec3 d = x[j] - xk;
-            if (wp::length_sq(d) < h2 && count < max_neighbours) {
-                out[count++] = j;
-                last = j;
-            }
-        }
+        SCAN_ROW(first, end);
     }
 }
-return wp::vec2i(count, last);
+#undef SCAN_ROW
+#undef SCAN_SCALAR
+return wp::vec2i(count, count > 0 ? out[count - 1] : k);
 """)
 def upper_neighbours(k: int, x_pred: wp.array(dtype=wp.vec3), cell_start: wp.array(dtype=int), c: wp.vec3i,
-                     dims: wp.vec3i, reach: int, h: float, max_neighbours: int, neighbour_index: wp.array(dtype=int),
-                     base: int) -> wp.vec2i:
+                     dims: wp.vec3i, reach: int, h: float, max_neighbours: int, vector_scan: int,
+                     neighbour_index: wp.array(dtype=int), base: int) -> wp.vec2i:
     """``find_neighbours``' scan: the particles j > k within h, written to neighbour_index[base...] in
-    ascending order; returns (count, last j). Native: 10% faster than the same loops in Warp, the
-    same lists. Trimming each row to the sphere (the row's nearest point bounds the x range) tests
-    a fifth fewer candidates but measured 10% slower, in Warp and here: the rows are short."""
+    ascending order; returns (count, last j). ``vector_scan`` picks the AVX-512 row scan where the
+    CPU has it (``ROW_SCAN``). The scalar loop is native: 10% faster than the same loops in Warp.
+    Trimming each row to the sphere (the row's nearest point bounds the x range) tests a fifth fewer
+    candidates but measured 10% slower, in Warp and natively: the rows are short."""
     ...
 
 
@@ -479,6 +536,7 @@ def find_neighbours(
     reach: int,
     h: float,
     max_neighbours: int,
+    vector_scan: int,
     packed: int,
     cursor: wp.array(dtype=int),
     neighbour_count: wp.array(dtype=int),
@@ -499,14 +557,15 @@ def find_neighbours(
     ``packed`` (the CPU, where a chunk runs its indices in order): each chunk writes its lists one
     after another into its own region (chunk offset x max_neighbours), so a pair pass streams
     through memory (35% faster per pass than fixed slots); otherwise (CUDA) each particle has
-    max_neighbours slots of its own.
+    max_neighbours slots of its own. ``vector_scan`` = 0 forces the scalar row scan (the same lists).
     """
     k = wp.tid() + offset
     c = cell_coord(x_pred[k], lo, inv_cell, dims)
     base = k * max_neighbours
     if packed != 0:
         base = offset * max_neighbours + cursor[offset]
-    found = upper_neighbours(k, x_pred, cell_start, c, dims, reach, h, max_neighbours, neighbour_index, base)
+    found = upper_neighbours(k, x_pred, cell_start, c, dims, reach, h, max_neighbours, vector_scan,
+                             neighbour_index, base)
     count = found[0]
     last = found[1]
     if packed != 0:

@@ -69,6 +69,8 @@ class PBFSolver:
         self.n = 0
         self.step_index = 0
         self.launch = Launcher(device, params.threads, reuse=True)
+        # the neighbour search's AVX-512 row scan where the CPU has one (False: the scalar scan)
+        self.vector_scan = True
         self._allocate()
         self._upload_obstacles()
         self._append(x0, v0)
@@ -157,16 +159,11 @@ class PBFSolver:
         self.step_index = step_index
 
     # -- stepping ---------------------------------------------------------------------------
-    def step(self) -> None:
-        """One solver step of length dt."""
+    def predict_and_search(self) -> list[tuple[int, int]]:
+        """The start of a step: predict positions under gravity, sort into cell order and build the
+        half neighbour lists on the predicted positions (``x_pred``); returns the blocks of the
+        pair passes."""
         p, n, launch = self.params, self.n, self.launch
-        x_new, v_new = self.schedule.emit(self.step_index)
-        if len(x_new):
-            self._append(x_new, v_new)
-            n = self.n
-        if n == 0:  # an emitter that has not started yet
-            self.step_index += 1
-            return
         obstacles = [self.spheres, self.box_lo, self.box_hi]
         bounds = [self.lo, self.hi, self.radius]
         g = wp.vec3(*p.gravity)
@@ -185,10 +182,9 @@ class PBFSolver:
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
         self.neighbour_cursor.zero_()
         launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
-                                      int(launch.cpu), self.neighbour_cursor, self.neighbour_count,
-                                      self.neighbour_span, self.neighbour_start, self.neighbour_end,
-                                      self.neighbour_index])
-        nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
+                                      int(self.vector_scan), int(launch.cpu), self.neighbour_cursor,
+                                      self.neighbour_count, self.neighbour_span, self.neighbour_start,
+                                      self.neighbour_end, self.neighbour_index])
         # Blocks for the pair passes: how far past itself a particle's pairs reach bounds their
         # size, the pair counts balance them (CPU only; on CUDA atomics make one launch safe).
         blocks = [(0, n)]
@@ -196,7 +192,22 @@ class PBFSolver:
             counts = self.neighbour_count.numpy()[:n]
             blocks = launch.scatter_blocks(n, int(self.neighbour_span.numpy()[:n].max()),
                                            np.concatenate([[0], np.cumsum(counts)]))
+        return blocks
 
+    def step(self) -> None:
+        """One solver step of length dt."""
+        p, n, launch = self.params, self.n, self.launch
+        x_new, v_new = self.schedule.emit(self.step_index)
+        if len(x_new):
+            self._append(x_new, v_new)
+            n = self.n
+        if n == 0:  # an emitter that has not started yet
+            self.step_index += 1
+            return
+        blocks = self.predict_and_search()
+        obstacles = [self.spheres, self.box_lo, self.box_hi]
+        bounds = [self.lo, self.hi, self.radius]
+        nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
         vol = self.mass / p.rest_density
         # Each pass scatters pair sums, then finishes them per particle (``Launcher.scatter_passes``).
         passes = []
