@@ -20,20 +20,10 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
-# Unchecked element access for the neighbour search. Warp's a[i] wraps negative indices (a shift,
-# an and and an add per access); the search indexes arrays tens of millions of times per step with
-# indices known to be valid, and the plain pointer access measured 16% faster on the pair loops,
-# bit for bit the same result. Contiguous 1D arrays only (every array here is).
-@wp.func_native("return a.data[i];")
-def load_vec3(a: wp.array(dtype=wp.vec3), i: int) -> wp.vec3: ...
-
-
-@wp.func_native("a.data[i] = v;")
-def store_int(a: wp.array(dtype=int), i: int, v: int): ...
-
-
 # -- the pair loops (native) ------------------------------------------------------------------------
-# The loops over a particle's half list, written in C++ (``wp.func_native``). ``wp::atomic_add`` is a
+# The loops over a particle's half list, written in C++ (``wp.func_native``). They index arrays through
+# their data pointers: Warp's a[i] wraps negative indices (a shift, an and and an add per access), and
+# the plain access measured 16% faster, bit for bit the same. ``wp::atomic_add`` is a
 # plain add on the CPU and an atomic on CUDA. A pair's values, for r = x_i - x_j: the spiky gradient
 # g = grad_coef (h - |r|)^2 r / |r| (grad_coef = -45 / (pi h^6), times a volume where wanted) and the
 # poly6 value poly6_coef (h^2 - |r|^2)^3. Pairs come from the neighbour list, so they are almost
