@@ -5,18 +5,23 @@ index range from a thread pool uses every core (1.6-2x measured on 2 cores). Ker
 ``offset`` as their first argument and write only their own index, except under ``scatter_passes``,
 which lets index i also write to (i, i + span]. On CUDA one launch covers all.
 
-Each dispatch costs: ``wp.launch`` packs its arguments (about 60 us for 15 of them) and a thread
-pool hand-off adds about 100 us here. The calling thread therefore runs one chunk itself, and a
+Each dispatch costs: ``wp.launch`` packs its arguments (about 60 us for 15 of them) and a hand-off
+to the worker threads adds about 50 us here (the waking of a sleeping core in this VM; a
+``ThreadPoolExecutor`` took 75 us). The calling thread therefore runs one chunk itself, and a
 Launcher made with ``reuse=True`` records each distinct launch once and replays it (about 9 us),
-which matters for the simulator's ~50 launches per step.
+which matters for the simulator's ~50 launches per step. Work with many dependent phases runs as a
+``gang``: one launch per thread for all of them, the phases separated by barriers in native code
+(``pipeline.gang``, 0.1 us each).
 """
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+import weakref
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -43,6 +48,87 @@ def init_warp(modules: tuple[Any, ...] = (), device: str = "cpu") -> None:
             wp.load_module(module, device=device)
 
 
+def _yield_address() -> int:
+    """The address of the C library's ``sched_yield``, which a gang's native barrier calls while it
+    waits longer than a short spin (0 where there is none: the barrier then only spins)."""
+    try:
+        return ctypes.cast(ctypes.CDLL(None).sched_yield, ctypes.c_void_p).value or 0
+    except (OSError, AttributeError, TypeError):
+        return 0
+
+
+class _Seat:
+    """One persistent worker thread and the two locks that hand it a function and hand back its end."""
+
+    def __init__(self, name: str):
+        self._start, self._done = threading.Lock(), threading.Lock()
+        self._start.acquire()
+        self._done.acquire()
+        self._fn: Callable[[], None] | None = None
+        self._error: BaseException | None = None
+        threading.Thread(target=self._serve, name=name, daemon=True).start()
+
+    def _serve(self) -> None:
+        while True:
+            self._start.acquire()
+            fn, self._fn = self._fn, None
+            if fn is None:
+                return
+            try:
+                fn()
+            except BaseException as error:  # handed to the caller by wait()
+                self._error = error
+            self._done.release()
+
+    def give(self, fn: Callable[[], None]) -> None:
+        self._fn = fn
+        self._start.release()
+
+    def wait(self) -> BaseException | None:
+        self._done.acquire()
+        error, self._error = self._error, None
+        return error
+
+    def stop(self) -> None:
+        self._fn = None
+        self._start.release()
+
+
+class _Crew:
+    """Worker threads that run one function at the same time as the calling thread.
+
+    Unlike a thread pool, every seat has its own thread, so ``run`` starts all its copies at once
+    (a gang's barriers need every member running), and a hand-off is one lock release. The threads
+    hold no reference to the owner: they stop when the crew is closed or collected."""
+
+    def __init__(self, workers: int):
+        self._seats = [_Seat(f"launcher-{k}") for k in range(workers)]
+        self._finalizer = weakref.finalize(self, _stop_seats, self._seats)
+
+    def run(self, fn: Callable[[int], None], count: int) -> None:
+        """``fn(k)`` for k in [0, count) at once: k < count - 1 on the workers, the last here."""
+        seats = self._seats[: max(0, min(count, len(self._seats) + 1) - 1)]
+        for k, seat in enumerate(seats):
+            seat.give(lambda k=k: fn(k))
+        error: BaseException | None = None
+        try:
+            fn(len(seats))
+        except BaseException as e:  # wait for the workers before raising
+            error = e
+        for seat in seats:
+            error = seat.wait() or error
+        if error is not None:
+            raise error
+
+    def close(self) -> None:
+        self._finalizer()
+
+
+def _stop_seats(seats: list[_Seat]) -> None:
+    for seat in seats:
+        seat.stop()
+
+
 def _key(value: Any) -> Any:
     """A hashable stand-in for a kernel argument: arrays by identity, vectors and scalars by value."""
     if isinstance(value, (bool, int, float)):
@@ -66,7 +152,9 @@ class Launcher:
         self.min_chunk = min_chunk
         self.cpu = not str(device).startswith("cuda")
         self._loaded: set = set()
-        self._pool = ThreadPoolExecutor(self.threads - 1) if self.cpu and self.threads > 1 else None
+        self._crew = _Crew(self.threads - 1) if self.cpu and self.threads > 1 else None
+        self._sync: wp.array | None = None
+        self._yield = _yield_address()
         # Recorded launches by (kernel, chunk slot, argument keys). Each entry keeps its inputs
         # alive, so an array's id cannot be reused by another array while its entry exists.
         self._recorded: dict | None = {} if reuse else None
@@ -86,6 +174,12 @@ class Launcher:
         if self._recorded is None:
             wp.launch(kernel, dim=count, inputs=[start, *inputs], device=self.device)
             return
+        self._command(kernel, slot, start, count, inputs).launch()
+
+    def _command(self, kernel: Any, slot: int, start: int, count: int, inputs: list[Any]) -> Any:
+        """The recorded launch over [start, start + count) (recorded now if new, else updated)."""
+        if self._recorded is None:
+            return wp.launch(kernel, dim=count, inputs=[start, *inputs], device=self.device, record_cmd=True)
         # The chunk bounds change from step to step (scatter blocks follow the pair counts), so
         # they are not part of the key: a replay sets the offset and the dimension.
         key = (kernel, slot, *map(_key, inputs))
@@ -102,7 +196,7 @@ class Launcher:
         if entry[3] != count:
             cmd.set_dim(count)
             entry[3] = count
-        cmd.launch()
+        return cmd
 
     def _run(self, tasks: list[tuple[int, int, list[Any]]], kernel: Any, slot_base: int = 0) -> None:
         """Run (start, count, inputs) launches of one kernel on the pool and the calling thread."""
@@ -122,26 +216,23 @@ class Launcher:
             for kernel, slot, start, count, inputs in task:
                 self._launch(kernel, slot, start, count, inputs)
 
-        if self._pool is None or len(tasks) <= 1:
+        if self._crew is None or len(tasks) <= 1:
             for task in tasks:
                 run(task)
             return
         counter = itertools.count()  # next() is atomic under the GIL
 
-        def work() -> None:
+        def work(_: int) -> None:
             for k in counter:
                 if k >= len(tasks):
                     return
                 run(tasks[k])
 
-        futures = [self._pool.submit(work) for _ in range(min(self.threads, len(tasks)) - 1)]
-        work()
-        for f in futures:
-            f.result()
+        self._crew.run(work, min(self.threads, len(tasks)))
 
     def split(self, n: int) -> list[tuple[int, int]]:
         """The (start, count) chunks a launch over n indices uses."""
-        chunks = 1 if self._pool is None else max(1, min(CHUNKS_PER_THREAD * self.threads, n // self.min_chunk))
+        chunks = 1 if self._crew is None else max(1, min(CHUNKS_PER_THREAD * self.threads, n // self.min_chunk))
         bounds = [n * c // chunks for c in range(chunks + 1)]
         return [(bounds[c], bounds[c + 1] - bounds[c]) for c in range(chunks) if bounds[c + 1] > bounds[c]]
 
@@ -168,8 +259,10 @@ class Launcher:
         self._run([(start, count, inputs_for_chunk(c)) for c, (start, count) in enumerate(chunks)], kernel)
         return len(chunks)
 
-    def scatter_blocks(self, n: int, span: int, cumulative: np.ndarray | None = None) -> list[tuple[int, int]]:
-        """(start, count) blocks of [0, n) for ``scatter_passes``: two per thread, each at least span + 1 long.
+    def scatter_blocks(self, n: int, span: int, cumulative: np.ndarray | None = None,
+                       per_thread: int = CHUNKS_PER_THREAD) -> list[tuple[int, int]]:
+        """(start, count) blocks of [0, n) for ``scatter_passes``: 2 x ``per_thread`` per thread, each at least
+        span + 1 long.
 
         With ``cumulative`` (a prefix sum of per-index work, length n + 1, such as the pair counts of
         a packed neighbour list) the cuts balance the work rather than the index count. The blocks
@@ -178,7 +271,7 @@ class Launcher:
         """
         if not self.cpu or n <= 0:
             return [(0, n)]
-        count = max(1, min(2 * CHUNKS_PER_THREAD * self.threads, n // (span + 1)))
+        count = max(1, min(2 * per_thread * self.threads, n // (span + 1)))
         if cumulative is None:
             cuts = [n * c // count for c in range(1, count)]
         else:
@@ -226,10 +319,34 @@ class Launcher:
         if finish_before is not None:
             self._run_tasks([[(finish_before[0], slot, start, count, finish_before[1])] for slot, start, count in even])
 
+    def gang(self, kernel: Any, phases: int, inputs: list[Any]) -> None:
+        """Run ``kernel(thread, threads, sync, yield_address, *inputs)`` once on every thread at the same
+        time (CPU only), for work of ``phases`` dependent phases: the kernel separates them with
+        ``gang.barrier`` and shares each phase's blocks out with ``gang.next_block`` on ``sync``
+        (zeroed here). One launch per thread instead of a hand-off per phase.
+
+        Every thread's launch is recorded before any starts, so an argument error raises here rather
+        than leaving the others waiting at a barrier."""
+        if not self.cpu:
+            raise ValueError("a gang runs on the CPU; on CUDA launch the passes one after another")
+        self._load(kernel)
+        size = 2 + phases
+        if self._sync is None or self._sync.shape[0] < size:
+            self._sync = wp.zeros(size, dtype=int, device=self.device)
+        else:
+            self._sync.zero_()
+        threads = self.threads if self._crew is not None else 1
+        args = [threads, self._sync, wp.uint64(self._yield), *inputs]
+        commands = [self._command(kernel, t, t, 1, args) for t in range(threads)]
+        if self._crew is None:
+            commands[0].launch()
+        else:
+            self._crew.run(lambda t: commands[t].launch(), threads)
+
     def close(self) -> None:
-        """Stop the thread pool and drop recorded launches."""
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        """Stop the worker threads and drop recorded launches."""
+        if self._crew is not None:
+            self._crew.close()
+            self._crew = None
         if self._recorded is not None:
             self._recorded.clear()
