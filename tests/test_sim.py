@@ -299,3 +299,29 @@ def test_neighbour_lists_are_the_pairs_within_h_with_either_scan(max_neighbours)
     assert (capped > 0) == (max_neighbours < 30), "the small cap must actually cut lists, the large one none"
     for a, b in zip(states[0], states[1], strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("threads, per_thread", [(2, 1), (2, 3), (3, 1)])
+def test_the_gang_step_adds_the_sums_of_the_phase_by_phase_step(threads, per_thread, monkeypatch):
+    # The CPU runs a step's pair passes as one gang launch per thread; launched phase by phase
+    # (``Launcher.scatter_passes``) on the same blocks, the step must come out bit for bit the same,
+    # with several blocks per thread (taken as threads come free) and with more threads than cores.
+    import pipeline.sim.pbf as pbf
+
+    monkeypatch.setattr(pbf, "BLOCKS_PER_THREAD", per_thread)
+    # a column long in z, the slowest axis of the cell order, so the blocks are many and short
+    scene = _scene(domain_hi=(0.2, 0.6, 1.5), fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.1, 0.3, 1.5)),))
+    params = SimulateConfig(particle_radius=0.0125, frames=1, threads=threads)
+    states = []
+    for gang in (True, False):
+        solver = PBFSolver(scene, params, "cpu", seed=2)
+        solver.gang = gang
+        for _ in range(3):
+            solver.step()
+        span = int(solver.neighbour_span.numpy()[:solver.n].max())
+        blocks = solver.launch.scatter_blocks(solver.n, span, per_thread=per_thread)
+        states.append(solver.state())
+        solver.close()
+    assert len(blocks) == 2 * per_thread * threads, "the column must be long enough for every block"
+    for a, b in zip(states[0], states[1], strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -27,6 +27,9 @@ from pipeline.sph import poly6_coefficient, spacing
 # Cells per kernel radius of the neighbour grid: 2 tests ~40% fewer candidates than 1.
 CELLS_PER_H = 2
 
+# Blocks per thread and phase of the pair passes on the CPU; threads take them as they come free.
+BLOCKS_PER_THREAD = 1
+
 
 class SimulationError(RuntimeError):
     """The simulation blew up; the message names the frame and the symptom."""
@@ -71,6 +74,8 @@ class PBFSolver:
         self.launch = Launcher(device, params.threads, reuse=True)
         # the neighbour search's AVX-512 row scan where the CPU has one (False: the scalar scan)
         self.vector_scan = True
+        # the CPU runs a step's pair passes as one gang launch (False: a launch per phase, the same sums)
+        self.gang = True
         self._allocate()
         self._upload_obstacles()
         self._append(x0, v0)
@@ -99,7 +104,8 @@ class PBFSolver:
         self.neighbour_start = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_end = wp.zeros(cap, dtype=int, device=dev)
         self.neighbour_cursor = wp.zeros(cap, dtype=int, device=dev)
-        self.neighbour_index = wp.zeros(cap * nb, dtype=int, device=dev)
+        # 8 slots of padding: the pair loops compute whole vectors of 8 pairs, reading up to 7 past a list
+        self.neighbour_index = wp.zeros(cap * nb + 8, dtype=int, device=dev)
         self.pair = wp.zeros(cap * nb, dtype=wp.vec4, device=dev)
         self.wall_grad = vec()
         # pair-sum accumulators of the scatter passes
@@ -109,6 +115,10 @@ class PBFSolver:
         self.omega_length = wp.zeros(cap, dtype=float, device=dev)
         self.particle_vol = wp.zeros(cap, dtype=float, device=dev)
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
+        # (start, end) of the pair-pass blocks (``Launcher.scatter_blocks`` makes at most 2 per thread)
+        self.block_bounds = wp.zeros(2 * BLOCKS_PER_THREAD * self.launch.threads, dtype=wp.vec2i, device=dev)
+        self.pass_constants = self._pass_constants()
+        self._arrangements: dict[tuple[int, ...], K.PassArrays] = {}
         # Dense grid of cells of width h over the container.
         extent = np.asarray(self.scene.domain_hi) - np.asarray(self.scene.domain_lo)
         self.cell_width = self.h / CELLS_PER_H
@@ -116,7 +126,10 @@ class PBFSolver:
         self.grid_dims = wp.vec3i(*dims)
         self.num_cells = int(np.prod(dims))
         self.cell_start = wp.zeros(self.num_cells + 1, dtype=int, device=dev)
-        self.key_bits = int(math.ceil(math.log2(max(2, (self.num_cells + 1) * cap))))
+        # sort keys (cell << id_bits) | id: the order of cell * capacity + id, but a shift, not a
+        # 64-bit division, recovers the cell (the cell starts took 1.0 ms per step with the division)
+        self.id_bits = max(1, int(math.ceil(math.log2(cap))))
+        self.key_bits = self.id_bits + max(1, int(math.ceil(math.log2(self.num_cells + 1))))
 
     def _upload_obstacles(self) -> None:
         spheres = [(*o.center, o.radius) for o in self.scene.obstacles if o.shape == "sphere"]
@@ -167,14 +180,13 @@ class PBFSolver:
         obstacles = [self.spheres, self.box_lo, self.box_hi]
         bounds = [self.lo, self.hi, self.radius]
         g = wp.vec3(*p.gravity)
-        # Predict, then sort into cell order (radix sort of cell * capacity + id).
+        # Predict, then sort into cell order (radix sort of (cell << id_bits) | id).
         grid = [self.lo, 1.0 / self.cell_width, self.grid_dims]
-        cap = wp.int64(self.capacity)
         launch(K.predict_positions, n, [self.particle_x, self.particle_v, g, self.dt, *bounds, *obstacles,
-                                        *grid[1:], self.particle_id, cap,
+                                        *grid[1:], self.particle_id, self.id_bits,
                                         self.v_tmp, self.x_pred, self.cell_keys, self.order])
         wp.utils.radix_sort_pairs(self.cell_keys, self.order, n, end_bit=self.key_bits)
-        launch(K.find_cell_starts, n + 1, [self.cell_keys, n, cap, self.num_cells, self.cell_start])
+        launch(K.find_cell_starts, n + 1, [self.cell_keys, n, self.id_bits, self.num_cells, self.cell_start])
         launch(K.gather_state, n, [self.order, self.particle_x, self.x_pred, self.v_tmp, self.particle_id,
                                    self.x_sorted, self.x_pred_other, self.particle_v, self.id_sorted])
         self.particle_x, self.x_sorted = self.x_sorted, self.particle_x
@@ -191,12 +203,12 @@ class PBFSolver:
         if launch.cpu:
             counts = self.neighbour_count.numpy()[:n]
             blocks = launch.scatter_blocks(n, int(self.neighbour_span.numpy()[:n].max()),
-                                           np.concatenate([[0], np.cumsum(counts)]))
+                                           np.concatenate([[0], np.cumsum(counts)]), BLOCKS_PER_THREAD)
         return blocks
 
     def step(self) -> None:
         """One solver step of length dt."""
-        p, n, launch = self.params, self.n, self.launch
+        n, launch = self.n, self.launch
         x_new, v_new = self.schedule.emit(self.step_index)
         if len(x_new):
             self._append(x_new, v_new)
@@ -205,11 +217,60 @@ class PBFSolver:
             self.step_index += 1
             return
         blocks = self.predict_and_search()
+        if launch.cpu and self.gang:
+            self._gang_passes(blocks)
+        else:
+            launch.scatter_passes(blocks, self._passes())
+        self.particle_x, self.x_pred = self.x_pred, self.particle_x
+        self.step_index += 1
+
+    def _pass_constants(self) -> K.PassConstants:
+        """The scalars of the pair passes, as the gang kernel takes them."""
+        p = self.params
+        c = K.PassConstants()
+        c.iterations = p.iterations
+        c.h, c.poly6_coef, c.spiky_coef = self.h, self.poly6_coef, self.spiky_coef
+        c.mass, c.vol = self.mass, self.mass / p.rest_density
+        c.corr_k, c.inv_corr_w_dq, c.corr_n = p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n
+        c.self_density, c.rest_density, c.relaxation = self.self_density, p.rest_density, p.relaxation
+        c.lo, c.hi, c.radius = self.lo, self.hi, self.radius
+        c.inv_dt, c.vorticity_eps, c.xsph_c, c.dt = 1.0 / self.dt, p.vorticity_epsilon, p.xsph_viscosity, self.dt
+        return c
+
+    def _gang_passes(self, blocks: list[tuple[int, int]]) -> None:
+        """Every pair pass of the step as one gang launch (the CPU): ``K.step_passes``."""
+        bounds = self.block_bounds.numpy()  # a view of the CPU array
+        bounds[: len(blocks)] = [(start, start + count) for start, count in blocks]
+        passes = 2 * self.params.iterations + 2
+        self.launch.gang(K.step_passes, 2 * passes + 1, [self.block_bounds, len(blocks), self.pass_constants,
+                                                         self._pass_arrays()])
+
+    def _pass_arrays(self) -> K.PassArrays:
+        """The pair passes' arrays as they stand this step (the buffers trade places from step to step;
+        each arrangement gets one struct, so a recorded launch replays with the right arrays)."""
+        arrays = {"x_pred": self.x_pred, "particle_x": self.particle_x, "v_tmp": self.v_tmp,
+                  "particle_v": self.particle_v, "neighbour_start": self.neighbour_start,
+                  "neighbour_end": self.neighbour_end, "neighbour_index": self.neighbour_index, "pair": self.pair,
+                  "acc4": self.acc4, "acc1": self.acc1, "acc3a": self.acc3a, "acc3b": self.acc3b,
+                  "particle_rho": self.particle_rho, "particle_lambda": self.particle_lambda,
+                  "wall_grad": self.wall_grad, "particle_omega": self.particle_omega,
+                  "omega_length": self.omega_length, "particle_vol": self.particle_vol, "wall": self.wall_table,
+                  "spheres": self.spheres, "box_lo": self.box_lo, "box_hi": self.box_hi}
+        key = tuple(id(a) for a in arrays.values())
+        struct = self._arrangements.get(key)
+        if struct is None:
+            struct = self._arrangements[key] = K.PassArrays()
+            for name, array in arrays.items():
+                setattr(struct, name, array)
+        return struct
+
+    def _passes(self) -> list[tuple]:
+        """The step's pair passes for ``Launcher.scatter_passes`` (CUDA: one block, atomics)."""
+        p = self.params
         obstacles = [self.spheres, self.box_lo, self.box_hi]
         bounds = [self.lo, self.hi, self.radius]
         nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
         vol = self.mass / p.rest_density
-        # Each pass scatters pair sums, then finishes them per particle (``Launcher.scatter_passes``).
         passes = []
         for it in range(p.iterations):
             passes.append((
@@ -223,8 +284,7 @@ class PBFSolver:
                 K.correction_pairs, [self.particle_lambda, *nb, self.pair, self.acc3a],
                 K.correction_finish, [self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds,
                                       *obstacles, self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1),
-                                      self.x_pred_other, self.v_tmp]))
-            self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
+                                      self.v_tmp]))
         passes.append((
             K.vorticity_pairs, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol, self.pair,
                                 self.particle_omega],
@@ -235,9 +295,7 @@ class PBFSolver:
                                 self.acc3b],
             K.viscosity_finish, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b, p.vorticity_epsilon,
                                  p.xsph_viscosity, self.dt, self.particle_v]))
-        launch.scatter_passes(blocks, passes)
-        self.particle_x, self.x_pred = self.x_pred, self.particle_x
-        self.step_index += 1
+        return passes
 
     def advance_frame(self, frame: int) -> FrameStats:
         """Run one frame's substeps and check for a blow-up (NaN, escape, runaway density)."""
