@@ -41,7 +41,8 @@ wp.set_module_options({"enable_backward": False})
 # faster (in-process A/B, the same state after 56 steps).
 GROUP = 16
 
-# The start of the vector loop over a group: a0..a2 = g and w for pair p0 + q. Lanes past the group's
+# The start of the vector loop over a group: a0..a2 = g and w for pair p0 + q (j3 indexes the flat
+# floats ``xf`` of x_pred, and ``vf`` of the velocities where a loop has them). Lanes past the group's
 # m pairs read the slots after the list (the index array's padding, or another list's entries: valid
 # indices either way), and their values are never used.
 PAIR_GEOMETRY = f"""
@@ -52,9 +53,10 @@ PAIR_GEOMETRY = f"""
 #endif
     for (int q = 0; q < mv; ++q) {{
         const int j = idx[p0 + q];
-        const float r0 = xi.c[0] - x[j].c[0];
-        const float r1 = xi.c[1] - x[j].c[1];
-        const float r2_ = xi.c[2] - x[j].c[2];
+        const int j3 = 3 * j;  // a 32-bit float offset: dword-indexed gathers (qword ones ran 4% slower)
+        const float r0 = xi.c[0] - xf[j3];
+        const float r1 = xi.c[1] - xf[j3 + 1];
+        const float r2_ = xi.c[2] - xf[j3 + 2];
         const float r2 = wp::length_sq(wp::vec3(r0, r1, r2_));
         const float d = wp::max(hh - r2, 0.0f);
         const float rl = wp::max(wp::sqrt(r2), 1.0e-9f);
@@ -68,6 +70,7 @@ PAIR_GEOMETRY = f"""
 
 @wp.func_native(f"""
 const wp::vec3* x = x_pred.data;
+const float* xf = reinterpret_cast<const float*>(x);
 const int* idx = neighbour_index.data;
 const wp::vec3 xi = x[i];
 const float hh = h * h;
@@ -141,7 +144,9 @@ def correction_pair_loop(i: int, particle_lambda: wp.array(dtype=float), neighbo
 
 @wp.func_native(f"""
 const wp::vec3* x = x_pred.data;
+const float* xf = reinterpret_cast<const float*>(x);
 const wp::vec3* v = particle_v.data;
+const float* vf = reinterpret_cast<const float*>(v);
 const int* idx = neighbour_index.data;
 const wp::vec3 xi = x[i];
 const wp::vec3 vi = v[i];
@@ -153,9 +158,9 @@ const int last = neighbour_end.data[i];
 for (int p0 = neighbour_start.data[i]; p0 < last; p0 += {GROUP}) {{
 {PAIR_GEOMETRY}
         // cross(v_j - v_i, -g) * vol, as wp::cross and the vec3 product compute it
-        const float d0 = v[j].c[0] - vi.c[0];
-        const float d1 = v[j].c[1] - vi.c[1];
-        const float d2 = v[j].c[2] - vi.c[2];
+        const float d0 = vf[j3] - vi.c[0];
+        const float d1 = vf[j3 + 1] - vi.c[1];
+        const float d2 = vf[j3 + 2] - vi.c[2];
         t0[q] = (d1 * -a2 - d2 * -a1) * vol;
         t1[q] = (d2 * -a0 - d0 * -a2) * vol;
         t2[q] = (d0 * -a1 - d1 * -a0) * vol;
