@@ -17,7 +17,11 @@ A ratio is printed only against a peer measured in the same run, on the same mac
   mass, kinetic energy, density and the extent of the fluid after 90 steps agree within 3x the
   largest difference between the project's run and its runs with four other seeds or one thread; a
   Taichi run with a parameter changed (two iterations) must not.
-- ``--profile``: milliseconds per step of each kernel of the project's solver.
+- ``--profile``: milliseconds per step of each kernel of the project's solver (its pair passes
+  launched phase by phase, so each can be timed).
+- ``--gang``: the CPU's gang launch of the pair passes (``Launcher.gang``) against launching them
+  phase by phase: two solvers in one process, alternating blocks of 8 steps so the host's drift
+  hits both alike; both must end in the same state.
 
 The peers install with the ``bench`` extra (``pip install -e '.[bench]'``); with them the project's
 solver runs on the CPU, as they do.
@@ -26,6 +30,7 @@ solver runs on the CPU, as they do.
     .venv/bin/python benchmarks/bench_sim.py --peers [--repeat 3]
     .venv/bin/python benchmarks/bench_sim.py --scaling [--plot docs/images/sim_scaling.png]
     .venv/bin/python benchmarks/bench_sim.py --check
+    .venv/bin/python benchmarks/bench_sim.py --gang [--repeat 10]
 """
 
 from __future__ import annotations
@@ -84,7 +89,7 @@ class KernelTimer:
             start = time.perf_counter()
             self.launch.scatter_passes(blocks, [(kernel, inputs, finish, finish_inputs)])
             wp.synchronize()
-            self.ms[f"{kernel.key} + {finish.key}"] += 1000 * (time.perf_counter() - start)
+            self.ms[f"{K.PASS_NAMES[inputs[0]]} pairs + finish"] += 1000 * (time.perf_counter() - start)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.launch, name)
@@ -389,6 +394,36 @@ def check_mode(args: argparse.Namespace, threads: int) -> None:
         sys.exit(1)
 
 
+def gang_mode(args: argparse.Namespace, threads: int) -> None:
+    """The gang launch against phase-by-phase launches of the same solver, interleaved in one process."""
+    init_warp((K,), "cpu")
+    solvers = {"gang (one launch per thread)": project_solver(args.particles, threads, "cpu"),
+               "phase by phase (a hand-off per phase)": project_solver(args.particles, threads, "cpu")}
+    solvers["phase by phase (a hand-off per phase)"].gang = False
+    for solver in solvers.values():
+        for _ in range(args.warmup):
+            solver.step()
+    seconds = {name: [] for name in solvers}
+    block = 8
+    for r in range(max(args.repeat, 4)):
+        for name in list(solvers)[:: 1 if r % 2 == 0 else -1]:
+            start = time.perf_counter()
+            for _ in range(block):
+                solvers[name].step()
+            seconds[name].append((time.perf_counter() - start) / block)
+    states = [solver.state() for solver in solvers.values()]
+    same = all(np.array_equal(a, b) for a, b in zip(states[0], states[1], strict=True))
+    n = next(iter(solvers.values())).n
+    print(f"{n:,} particles, CPU, {threads} threads; blocks of {block} steps alternating, {max(args.repeat, 4)} each")
+    gang, phases = (np.array(v) for v in seconds.values())
+    for name, v in seconds.items():
+        print(f"  {name:40s} {1000 * statistics.median(v):6.2f} ms/step (median of blocks)")
+    print(f"  gang / phase by phase, median of paired blocks: {float(np.median(gang / phases)):.3f}")
+    print(f"  the same state after {solvers[next(iter(solvers))].step_index} steps: {same}")
+    for solver in solvers.values():
+        solver.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=50_000)
@@ -406,6 +441,7 @@ def main() -> None:
     parser.add_argument("--check-control", default="iterations=2",
                         help="--check: a Taichi run with this parameter changed, which the check must tell apart")
     parser.add_argument("--json", action="store_true", help="print the project's measurement as one JSON line")
+    parser.add_argument("--gang", action="store_true", help="the gang launch against phase-by-phase launches")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING  # no greeting or module-load lines
     threads = args.threads or os.cpu_count() or 1
@@ -415,6 +451,8 @@ def main() -> None:
         scaling_mode(args, threads)
     elif args.check:
         check_mode(args, threads)
+    elif args.gang:
+        gang_mode(args, threads)
     else:
         device = warp_device(choose_device("auto")) if not args.json else "cpu"
         result, kernels = measure_project(args.particles, args.steps, threads, device, args.warmup, args.profile)

@@ -5,7 +5,9 @@ A phase hand-off through Python costs about 50 us (a sleeping core must be woken
 spin on one counter and cost about 0.1 us, and a thread that waits longer than a short spin yields
 its core (``sched_yield``, whose address the launcher passes in), so a gang with more threads than
 cores still makes progress. ``sync`` is zeroed before each launch: ``sync[0]`` counts arrivals at
-barriers, ``sync[1 + phase]`` hands out the blocks of a phase. These are CPU-only (C11 atomics).
+barriers, ``sync[1 + phase]`` hands out the blocks of a phase. These are CPU-only (the compiler's
+atomic builtins): compiled for CUDA, where a module's every function is built too, the barrier is
+empty and ``next_block`` hands out nothing.
 """
 
 import warp as wp
@@ -14,6 +16,7 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.func_native("""
+#if !defined(__CUDA_ARCH__)
 int* arrivals = sync.data;
 const int target = threads * (phase + 1);
 __atomic_add_fetch(arrivals, 1, __ATOMIC_ACQ_REL);
@@ -28,6 +31,7 @@ while (__atomic_load_n(arrivals, __ATOMIC_ACQUIRE) < target) {
         if (yield_address != 0) reinterpret_cast<wp::int32 (*)()>(yield_address)();
     }
 }
+#endif
 """)
 def barrier(sync: wp.array(dtype=int), phase: int, threads: int, yield_address: wp.uint64):
     """Wait until all ``threads`` have reached the barrier ending ``phase`` (phases numbered from 0,
@@ -36,7 +40,11 @@ def barrier(sync: wp.array(dtype=int), phase: int, threads: int, yield_address: 
 
 
 @wp.func_native("""
+#if !defined(__CUDA_ARCH__)
 return __atomic_fetch_add(sync.data + 1 + phase, 1, __ATOMIC_RELAXED);
+#else
+return 2147483647;
+#endif
 """)
 def next_block(sync: wp.array(dtype=int), phase: int) -> int:
     """The next unclaimed block of ``phase`` (0, 1, 2, ... across all threads); the caller stops once it

@@ -1,7 +1,7 @@
 """Chunked Warp launches over the CPU cores.
 
 Warp runs a CPU launch on one core but releases the GIL, so launching disjoint chunks of a kernel's
-index range from a thread pool uses every core (1.6-2x measured on 2 cores). Kernels take the chunk
+index range from worker threads uses every core (1.6-2x measured on 2 cores). Kernels take the chunk
 ``offset`` as their first argument and write only their own index, except under ``scatter_passes``,
 which lets index i also write to (i, i + span]. On CUDA one launch covers all.
 
