@@ -89,7 +89,7 @@ class KernelTimer:
             start = time.perf_counter()
             self.launch.scatter_passes(blocks, [(kernel, inputs, finish, finish_inputs)])
             wp.synchronize()
-            self.ms[f"{K.PASS_NAMES[inputs[0]]} pairs + finish"] += 1000 * (time.perf_counter() - start)
+            self.ms[f"{kernel.key} + {finish.key}"] += 1000 * (time.perf_counter() - start)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.launch, name)

@@ -117,14 +117,7 @@ def density_pair_loop(i: int, x_pred: wp.array(dtype=wp.vec3), neighbour_start: 
                       poly6_coef: float, grad_coef: float, mass: float, corr_k: float, inv_corr_w_dq: float,
                       corr_n: int, pair: wp.array(dtype=wp.vec4), acc: wp.array(dtype=wp.vec4),
                       acc_sq: wp.array(dtype=float)):
-    """Particle i's pairs of the density constraint: (sum V grad W, sum m W) into acc, sum |V grad W|^2
-    into acc_sq.
-
-    With r = x_i - x_j and g = V grad W(r), particle i gains (g, mW) and j gains (-g, mW); both
-    gain |g|^2. Each pair's g and artificial pressure s_corr = -k (W / W(dq))^n are cached in one
-    vec4 for the correction pass, which then needs no square root. The scatter to j is a plain
-    add on the CPU, made race-free by the two-phase block launch (``Launcher.scatter_passes``).
-    """
+    """``density_pairs``' loop over particle i's half list."""
     ...
 
 
@@ -145,8 +138,7 @@ wp::atomic_add(acc_dp.data + i, own);
 def correction_pair_loop(i: int, particle_lambda: wp.array(dtype=float), neighbour_start: wp.array(dtype=int),
                          neighbour_end: wp.array(dtype=int), neighbour_index: wp.array(dtype=int),
                          pair: wp.array(dtype=wp.vec4), acc_dp: wp.array(dtype=wp.vec3)):
-    """Particle i's position corrections: t = (lambda_i + lambda_j + s_corr) V grad W_ij, +t to i and -t
-    to j."""
+    """``correction_pairs``' loop over particle i's half list."""
     ...
 
 
@@ -187,11 +179,7 @@ def vorticity_pair_loop(i: int, x_pred: wp.array(dtype=wp.vec3), particle_v: wp.
                         neighbour_start: wp.array(dtype=int), neighbour_end: wp.array(dtype=int),
                         neighbour_index: wp.array(dtype=int), h: float, poly6_coef: float, grad_coef: float,
                         vol: float, pair: wp.array(dtype=wp.vec4), acc_omega: wp.array(dtype=wp.vec3)):
-    """Particle i's pairs of the vorticity omega_i = sum_j V (v_j - v_i) x grad_j W_ij (1/s).
-
-    The term is the same for both ends of a pair (swapping i and j flips both factors), so it is
-    added to i and j. Each pair's grad W and W are cached for the viscosity pass.
-    """
+    """``vorticity_pairs``' loop over particle i's half list."""
     ...
 
 
@@ -225,8 +213,7 @@ def viscosity_pair_loop(i: int, particle_v: wp.array(dtype=wp.vec3), omega_lengt
                         neighbour_end: wp.array(dtype=int), neighbour_index: wp.array(dtype=int),
                         pair: wp.array(dtype=wp.vec4), acc_eta: wp.array(dtype=wp.vec3),
                         acc_visc: wp.array(dtype=wp.vec3)):
-    """Particle i's pairs of eta_i = sum_j V_j grad W_ij (|omega_j| - |omega_i|) and of the XSPH sum
-    sum_j V_j (v_j - v_i) W_ij, both ends."""
+    """``viscosity_pairs``' loop over particle i's half list."""
     ...
 
 
@@ -601,6 +588,36 @@ def find_neighbours(
     neighbour_end[k] = base + count
 
 
+@wp.kernel
+def density_pairs(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    h: float,
+    poly6_coef: float,
+    spiky_coef: float,
+    mass: float,
+    vol: float,
+    corr_k: float,
+    inv_corr_w_dq: float,
+    corr_n: int,
+    pair: wp.array(dtype=wp.vec4),
+    acc: wp.array(dtype=wp.vec4),
+    acc_sq: wp.array(dtype=float),
+):
+    """Pair sums of the density constraint: (sum V grad W, sum m W) into acc and sum |V grad W|^2.
+
+    With r = x_i - x_j and g = V grad W(r), particle i gains (g, mW) and j gains (-g, mW); both
+    gain |g|^2. Each pair's g and artificial pressure s_corr = -k (W / W(dq))^n are cached in one
+    vec4 for the correction pass, which then needs no square root. The scatter to j is a plain
+    add on the CPU, made race-free by the two-phase block launch (``Launcher.scatter``).
+    """
+    density_pair_loop(wp.tid() + offset, x_pred, neighbour_start, neighbour_end, neighbour_index, h, poly6_coef,
+                      spiky_coef * vol, mass, corr_k, inv_corr_w_dq, corr_n, pair, acc, acc_sq)
+
+
 @wp.func
 def density_finish_at(
     i: int,
@@ -637,6 +654,47 @@ def density_finish_at(
     c = wp.max(rho / rest_density - 1.0, 0.0)
     particle_rho[i] = rho
     particle_lambda[i] = -c / (sq + wp.dot(grad_i, grad_i) + relaxation)
+
+
+@wp.kernel
+def density_finish(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    acc: wp.array(dtype=wp.vec4),
+    acc_sq: wp.array(dtype=float),
+    h: float,
+    self_density: float,
+    vol: float,
+    rest_density: float,
+    relaxation: float,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    wall: wp.array(dtype=wp.vec2),
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    particle_rho: wp.array(dtype=float),
+    particle_lambda: wp.array(dtype=float),
+    wall_grad: wp.array(dtype=wp.vec3),
+):
+    """``density_finish_at`` for every particle of the launch."""
+    density_finish_at(wp.tid() + offset, x_pred, acc, acc_sq, h, self_density, vol, rest_density, relaxation, lo,
+                      hi, wall, spheres, box_lo, box_hi, particle_rho, particle_lambda, wall_grad)
+
+
+@wp.kernel
+def correction_pairs(
+    offset: int,
+    particle_lambda: wp.array(dtype=float),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    pair: wp.array(dtype=wp.vec4),
+    acc_dp: wp.array(dtype=wp.vec3),
+):
+    """Position corrections: t = (lambda_i + lambda_j + s_corr) V grad W_ij, +t to i and -t to j."""
+    correction_pair_loop(wp.tid() + offset, particle_lambda, neighbour_start, neighbour_end, neighbour_index, pair,
+                         acc_dp)
 
 
 @wp.func
@@ -676,12 +734,84 @@ def correction_finish_at(
         v_out[i] = (x - particle_x[i]) * inv_dt
 
 
+@wp.kernel
+def correction_finish(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_lambda: wp.array(dtype=float),
+    acc_dp: wp.array(dtype=wp.vec3),
+    wall_grad: wp.array(dtype=wp.vec3),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    particle_x: wp.array(dtype=wp.vec3),
+    inv_dt: float,
+    last: int,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """``correction_finish_at`` for every particle of the launch."""
+    correction_finish_at(wp.tid() + offset, x_pred, particle_lambda, acc_dp, wall_grad, lo, hi, radius, spheres,
+                         box_lo, box_hi, particle_x, inv_dt, last, v_out)
+
+
+@wp.kernel
+def vorticity_pairs(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    h: float,
+    poly6_coef: float,
+    spiky_coef: float,
+    vol: float,
+    pair: wp.array(dtype=wp.vec4),
+    acc_omega: wp.array(dtype=wp.vec3),
+):
+    """Vorticity omega_i = sum_j V (v_j - v_i) x grad_j W_ij (1/s).
+
+    The term is the same for both ends of a pair (swapping i and j flips both factors), so it is
+    added to i and j. Each pair's grad W and W are cached for the viscosity pass.
+    """
+    vorticity_pair_loop(wp.tid() + offset, x_pred, particle_v, neighbour_start, neighbour_end, neighbour_index, h,
+                        poly6_coef, spiky_coef, vol, pair, acc_omega)
+
+
 @wp.func
 def vorticity_finish_at(i: int, omega: wp.array(dtype=wp.vec3), particle_rho: wp.array(dtype=float), mass: float,
                         omega_length: wp.array(dtype=float), particle_vol: wp.array(dtype=float)):
     """|omega_i| and the particle volume V_i = m / rho_i, both read per pair by the viscosity pass."""
     omega_length[i] = wp.length(omega[i])
     particle_vol[i] = mass / particle_rho[i]
+
+
+@wp.kernel
+def vorticity_finish(offset: int, omega: wp.array(dtype=wp.vec3), particle_rho: wp.array(dtype=float), mass: float,
+                     omega_length: wp.array(dtype=float), particle_vol: wp.array(dtype=float)):
+    """``vorticity_finish_at`` for every particle of the launch."""
+    vorticity_finish_at(wp.tid() + offset, omega, particle_rho, mass, omega_length, particle_vol)
+
+
+@wp.kernel
+def viscosity_pairs(
+    offset: int,
+    particle_v: wp.array(dtype=wp.vec3),
+    omega_length: wp.array(dtype=float),
+    particle_vol: wp.array(dtype=float),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    pair: wp.array(dtype=wp.vec4),
+    acc_eta: wp.array(dtype=wp.vec3),
+    acc_visc: wp.array(dtype=wp.vec3),
+):
+    """eta_i = sum_j V_j grad W_ij (|omega_j| - |omega_i|) and XSPH sum_j V_j (v_j - v_i) W_ij, both ends."""
+    viscosity_pair_loop(wp.tid() + offset, particle_v, omega_length, particle_vol, neighbour_start, neighbour_end,
+                        neighbour_index, pair, acc_eta, acc_visc)
 
 
 @wp.func
@@ -711,15 +841,33 @@ def viscosity_finish_at(
     v_out[i] = v
 
 
-# -- the pair passes ----------------------------------------------------------------------------------
-# A step's pair passes, in step order: the iterations' density (0) and correction (1) passes, then
-# vorticity (2) and viscosity (3), each its pairs and then its finish. ``Launcher.scatter_passes``
-# launches them pass by pass (``pass_pairs``, ``pass_finish``: CUDA, or the CPU phase by phase); on
-# the CPU they run as one launch per thread (``step_passes`` through ``Launcher.gang``): the same
-# block schedule (even blocks, then odd, a pass's finish inside its phases), with the phases
-# separated by native barriers instead of Python hand-offs, and each phase's blocks taken by
-# whichever thread comes free.
-PASS_NAMES = ("density", "correction", "vorticity", "viscosity")
+@wp.kernel
+def viscosity_finish(
+    offset: int,
+    particle_v: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    acc_eta: wp.array(dtype=wp.vec3),
+    acc_visc: wp.array(dtype=wp.vec3),
+    vorticity_eps: float,
+    xsph_c: float,
+    dt: float,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """``viscosity_finish_at`` for every particle of the launch."""
+    viscosity_finish_at(wp.tid() + offset, particle_v, particle_omega, acc_eta, acc_visc, vorticity_eps, xsph_c, dt,
+                        v_out)
+
+
+# -- all pair passes of a step as one gang launch (CPU) --------------------------------------------
+# The passes a step runs through ``Launcher.scatter_passes`` on CUDA run on the CPU as one launch per
+# thread (``Launcher.gang``): the same block schedule (even blocks, then odd, a pass's finish inside
+# its phases), with the phases separated by native barriers instead of Python hand-offs, and each
+# phase's blocks taken by whichever thread comes free. Pass kinds, in step order: the iterations'
+# density (0) and correction (1) passes, then vorticity (2) and viscosity (3).
+# The gang takes its arguments as two structs; the per-particle kernels above keep plain arguments:
+# a kernel copies its struct arguments for every index it runs (1.2 KB here), which made the
+# finish kernels 2-7x slower in a trial (the vorticity finish 0.19 -> 1.31 ms on one thread), while
+# the gang copies them once per block.
 
 
 @wp.struct
@@ -784,84 +932,46 @@ def pass_kind(p: int, iterations: int) -> int:
 
 
 @wp.func
-def pair_at(kind: int, i: int, c: PassConstants, a: PassArrays):
-    """Particle i's pairs in a pass of ``kind``."""
-    if kind == 0:
-        density_pair_loop(i, a.x_pred, a.neighbour_start, a.neighbour_end, a.neighbour_index, c.h, c.poly6_coef,
-                          c.spiky_coef * c.vol, c.mass, c.corr_k, c.inv_corr_w_dq, c.corr_n, a.pair, a.acc4, a.acc1)
-    elif kind == 1:
-        correction_pair_loop(i, a.particle_lambda, a.neighbour_start, a.neighbour_end, a.neighbour_index, a.pair,
-                             a.acc3a)
-    elif kind == 2:
-        vorticity_pair_loop(i, a.x_pred, a.v_tmp, a.neighbour_start, a.neighbour_end, a.neighbour_index, c.h,
-                            c.poly6_coef, c.spiky_coef, c.vol, a.pair, a.particle_omega)
-    else:
-        viscosity_pair_loop(i, a.v_tmp, a.omega_length, a.particle_vol, a.neighbour_start, a.neighbour_end,
-                            a.neighbour_index, a.pair, a.acc3a, a.acc3b)
-
-
-@wp.func
-def finish_at(kind: int, last: int, i: int, c: PassConstants, a: PassArrays):
-    """Particle i's finish of a pass of ``kind``; ``last`` marks the last correction."""
-    if kind == 0:
-        density_finish_at(i, a.x_pred, a.acc4, a.acc1, c.h, c.self_density, c.vol, c.rest_density, c.relaxation,
-                          c.lo, c.hi, a.wall, a.spheres, a.box_lo, a.box_hi, a.particle_rho, a.particle_lambda,
-                          a.wall_grad)
-    elif kind == 1:
-        correction_finish_at(i, a.x_pred, a.particle_lambda, a.acc3a, a.wall_grad, c.lo, c.hi, c.radius, a.spheres,
-                             a.box_lo, a.box_hi, a.particle_x, c.inv_dt, last, a.v_tmp)
-    elif kind == 2:
-        vorticity_finish_at(i, a.particle_omega, a.particle_rho, c.mass, a.omega_length, a.particle_vol)
-    else:
-        viscosity_finish_at(i, a.v_tmp, a.particle_omega, a.acc3a, a.acc3b, c.vorticity_eps, c.xsph_c, c.dt,
-                            a.particle_v)
-
-
-@wp.kernel
-def pass_pairs(offset: int, kind: int, c: PassConstants, a: PassArrays):
-    """The pairs of a pass of ``kind`` for every particle of the launch (``Launcher.scatter_passes``:
-    CUDA, with atomic adds, or the CPU phase by phase)."""
-    pair_at(kind, wp.tid() + offset, c, a)
-
-
-@wp.kernel
-def pass_finish(offset: int, kind: int, last: int, c: PassConstants, a: PassArrays):
-    """The finish of a pass of ``kind`` for every particle of the launch."""
-    finish_at(kind, last, wp.tid() + offset, c, a)
-
-
-@wp.func
 def pairs_block(kind: int, start: int, end: int, c: PassConstants, a: PassArrays):
-    """The pairs of one pass over the block [start, end) (the kind tested once, not per particle)."""
+    """The pair loops of one pass over the block [start, end)."""
     if kind == 0:
         for i in range(start, end):
-            pair_at(0, i, c, a)
+            density_pair_loop(i, a.x_pred, a.neighbour_start, a.neighbour_end, a.neighbour_index, c.h, c.poly6_coef,
+                              c.spiky_coef * c.vol, c.mass, c.corr_k, c.inv_corr_w_dq, c.corr_n, a.pair, a.acc4,
+                              a.acc1)
     elif kind == 1:
         for i in range(start, end):
-            pair_at(1, i, c, a)
+            correction_pair_loop(i, a.particle_lambda, a.neighbour_start, a.neighbour_end, a.neighbour_index, a.pair,
+                                 a.acc3a)
     elif kind == 2:
         for i in range(start, end):
-            pair_at(2, i, c, a)
+            vorticity_pair_loop(i, a.x_pred, a.v_tmp, a.neighbour_start, a.neighbour_end, a.neighbour_index, c.h,
+                                c.poly6_coef, c.spiky_coef, c.vol, a.pair, a.particle_omega)
     else:
         for i in range(start, end):
-            pair_at(3, i, c, a)
+            viscosity_pair_loop(i, a.v_tmp, a.omega_length, a.particle_vol, a.neighbour_start, a.neighbour_end,
+                                a.neighbour_index, a.pair, a.acc3a, a.acc3b)
 
 
 @wp.func
 def finish_block(kind: int, last: int, start: int, end: int, c: PassConstants, a: PassArrays):
-    """The finish of one pass over the block [start, end)."""
+    """The finish of one pass over the block [start, end); ``last`` marks the last correction."""
     if kind == 0:
         for i in range(start, end):
-            finish_at(0, last, i, c, a)
+            density_finish_at(i, a.x_pred, a.acc4, a.acc1, c.h, c.self_density, c.vol, c.rest_density, c.relaxation,
+                              c.lo, c.hi, a.wall, a.spheres, a.box_lo, a.box_hi, a.particle_rho, a.particle_lambda,
+                              a.wall_grad)
     elif kind == 1:
         for i in range(start, end):
-            finish_at(1, last, i, c, a)
+            correction_finish_at(i, a.x_pred, a.particle_lambda, a.acc3a, a.wall_grad, c.lo, c.hi, c.radius,
+                                 a.spheres, a.box_lo, a.box_hi, a.particle_x, c.inv_dt, last, a.v_tmp)
     elif kind == 2:
         for i in range(start, end):
-            finish_at(2, last, i, c, a)
+            vorticity_finish_at(i, a.particle_omega, a.particle_rho, c.mass, a.omega_length, a.particle_vol)
     else:
         for i in range(start, end):
-            finish_at(3, last, i, c, a)
+            viscosity_finish_at(i, a.v_tmp, a.particle_omega, a.acc3a, a.acc3b, c.vorticity_eps, c.xsph_c, c.dt,
+                                a.particle_v)
 
 
 @wp.kernel
@@ -871,8 +981,8 @@ def step_passes(thread: int, threads: int, sync: wp.array(dtype=int), yield_addr
 
     Phase 2p (even blocks) finishes pass p - 1 and runs pass p's pairs; phase 2p + 1 (odd blocks)
     runs pass p's pairs and finishes it; a last even phase finishes the last pass. That is
-    ``Launcher.scatter_passes``' schedule of ``pass_pairs`` and ``pass_finish``, so the sums are added
-    in the same order (bit-identical for the same blocks), whichever thread runs a block.
+    ``Launcher.scatter_passes``' schedule, so the sums are added in the same order (bit-identical
+    for the same blocks), whichever thread runs a block.
     """
     passes = 2 * c.iterations + 2
     last_correction = 2 * c.iterations - 1

@@ -268,9 +268,36 @@ class PBFSolver:
 
     def _passes(self) -> list[tuple]:
         """The step's pair passes for ``Launcher.scatter_passes`` (CUDA: one block, atomics)."""
-        c, a, iterations = self.pass_constants, self._pass_arrays(), self.params.iterations
-        kinds = [(it % 2, int(it == 2 * iterations - 1)) for it in range(2 * iterations)] + [(2, 0), (3, 0)]
-        return [(K.pass_pairs, [kind, c, a], K.pass_finish, [kind, last, c, a]) for kind, last in kinds]
+        p = self.params
+        obstacles = [self.spheres, self.box_lo, self.box_hi]
+        bounds = [self.lo, self.hi, self.radius]
+        nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
+        vol = self.mass / p.rest_density
+        passes = []
+        for it in range(p.iterations):
+            passes.append((
+                K.density_pairs, [self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
+                                  p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n, self.pair,
+                                  self.acc4, self.acc1],
+                K.density_finish, [self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
+                                   p.relaxation, self.lo, self.hi, self.wall_table, *obstacles,
+                                   self.particle_rho, self.particle_lambda, self.wall_grad]))
+            passes.append((
+                K.correction_pairs, [self.particle_lambda, *nb, self.pair, self.acc3a],
+                K.correction_finish, [self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds,
+                                      *obstacles, self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1),
+                                      self.v_tmp]))
+        passes.append((
+            K.vorticity_pairs, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol, self.pair,
+                                self.particle_omega],
+            K.vorticity_finish, [self.particle_omega, self.particle_rho, self.mass, self.omega_length,
+                                 self.particle_vol]))
+        passes.append((
+            K.viscosity_pairs, [self.v_tmp, self.omega_length, self.particle_vol, *nb, self.pair, self.acc3a,
+                                self.acc3b],
+            K.viscosity_finish, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b, p.vorticity_epsilon,
+                                 p.xsph_viscosity, self.dt, self.particle_v]))
+        return passes
 
     def advance_frame(self, frame: int) -> FrameStats:
         """Run one frame's substeps and check for a blow-up (NaN, escape, runaway density)."""
