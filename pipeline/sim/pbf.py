@@ -237,6 +237,7 @@ class PBFSolver:
         c.self_density, c.rest_density, c.relaxation = self.self_density, p.rest_density, p.relaxation
         c.lo, c.hi, c.radius = self.lo, self.hi, self.radius
         c.inv_dt, c.vorticity_eps, c.xsph_c, c.dt = 1.0 / self.dt, p.vorticity_epsilon, p.xsph_viscosity, self.dt
+        c.native_finish = 1
         return c
 
     def _gang_passes(self, blocks: list[tuple[int, int]]) -> None:
