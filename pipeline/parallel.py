@@ -78,6 +78,9 @@ class _Seat:
                 fn()
             except BaseException as error:  # handed to the caller by wait()
                 self._error = error
+            # drop the function before waiting again: it may hold the launcher, which must stay
+            # collectable (its finalizer stops these threads)
+            fn = None
             self._done.release()
 
     def give(self, fn: Callable[[], None]) -> None:

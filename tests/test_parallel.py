@@ -85,3 +85,24 @@ def test_an_error_on_a_worker_thread_reaches_the_caller_and_the_crew_goes_on():
     launch._crew.run(lambda k: ran.append(10 + k), 2)
     launch.close()
     assert sorted(ran) == [1, 10, 11]
+
+
+def test_a_launcher_dropped_without_close_stops_its_threads():
+    import gc
+    import threading
+
+    init_warp((), "cpu")
+
+    def crew_threads() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if t.name.startswith("launcher-")]
+
+    before = set(crew_threads())
+    launch = Launcher("cpu", 3)
+    launch._crew.run(lambda k, held=launch: None, 3)  # the workers ran a function holding the launcher
+    started = set(crew_threads()) - before
+    assert len(started) == 2
+    del launch
+    gc.collect()
+    for thread in started:
+        thread.join(timeout=5)
+    assert not any(t.is_alive() for t in started), "a collected launcher's worker threads must end"
