@@ -329,14 +329,15 @@ def test_the_gang_step_adds_the_sums_of_the_phase_by_phase_step(threads, per_thr
 
 def test_the_native_finish_loops_give_the_general_functions_bits():
     # A scene without obstacles finishes its density and correction passes in native loops over
-    # each block; the general Warp functions (which obstacles need) must give the same bits. The
-    # column falls against the floor and two walls, so the wall terms act.
+    # each block in the gang; the general Warp functions (which obstacles need, and the phase-by-phase
+    # launches use) must give the same bits. The column falls against the floor and two walls, so
+    # the wall terms act.
     scene = _scene(fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.15, 0.3, 0.2)),))
     params = SimulateConfig(particle_radius=0.0125, frames=1, threads=2)
     states = []
-    for native in (1, 0):
+    for native in (True, False):
         solver = PBFSolver(scene, params, "cpu", seed=4)
-        solver.pass_constants.native_finish = native
+        solver.gang = native
         for _ in range(6):
             solver.step()
         states.append((*solver.state(), solver.particle_rho.numpy()[:solver.n].copy()))

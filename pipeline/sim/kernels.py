@@ -865,7 +865,7 @@ def viscosity_finish(
 # whose table value is zero, is skipped instead of added (adding a zero leaves a sum that starts at
 # +0 unchanged), and so is the zero a wall's normal gives the other two axes. Obstacles need the
 # general functions, so a scene with any takes those.
-WALL_TABLE = """
+WALL_TERM = """
 #define WALL_TERM(distance, axis_sum, sign) {                                        \\
     const float dd = (distance);                                                     \\
     if (dd < h) {                                                                    \\
@@ -889,7 +889,7 @@ const wp::vec2* tab = wall.data;
 const int last_entry = wall.shape[0] - 1;
 const float scale = static_cast<float>(last_entry);
 const float mass = vol * rest_density;
-""" + WALL_TABLE + """
+""" + WALL_TERM + """
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 #pragma clang loop vectorize(assume_safety)
 #endif
@@ -1008,7 +1008,6 @@ class PassConstants:
     vorticity_eps: float
     xsph_c: float
     dt: float
-    native_finish: int  # 1: the native finish loops where the scene has no obstacles
 
 
 @wp.struct
@@ -1072,7 +1071,7 @@ def pairs_block(kind: int, start: int, end: int, c: PassConstants, a: PassArrays
 @wp.func
 def finish_block(kind: int, last: int, start: int, end: int, c: PassConstants, a: PassArrays):
     """The finish of one pass over the block [start, end); ``last`` marks the last correction."""
-    walls_only = c.native_finish != 0 and a.spheres.shape[0] == 0 and a.box_lo.shape[0] == 0
+    walls_only = a.spheres.shape[0] == 0 and a.box_lo.shape[0] == 0
     if kind == 0:
         if walls_only:
             density_finish_walls(start, end, a.x_pred, a.acc4, a.acc1, c.h, c.self_density, c.vol, c.rest_density,

@@ -117,7 +117,7 @@ class PBFSolver:
         self.omega_length = wp.zeros(cap, dtype=float, device=dev)
         self.particle_vol = wp.zeros(cap, dtype=float, device=dev)
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
-        # (start, end) of the pair-pass blocks (``Launcher.scatter_blocks`` makes at most 2 per thread)
+        # (start, end) of the pair-pass blocks (``Launcher.scatter_blocks``: at most 2 x BLOCKS_PER_THREAD a thread)
         self.block_bounds = wp.zeros(2 * BLOCKS_PER_THREAD * self.launch.threads, dtype=wp.vec2i, device=dev)
         self.pass_constants = self._pass_constants()
         self._arrangements: dict[tuple[int, ...], K.PassArrays] = {}
@@ -237,7 +237,6 @@ class PBFSolver:
         c.self_density, c.rest_density, c.relaxation = self.self_density, p.rest_density, p.relaxation
         c.lo, c.hi, c.radius = self.lo, self.hi, self.radius
         c.inv_dt, c.vorticity_eps, c.xsph_c, c.dt = 1.0 / self.dt, p.vorticity_epsilon, p.xsph_viscosity, self.dt
-        c.native_finish = 1
         return c
 
     def _gang_passes(self, blocks: list[tuple[int, int]]) -> None:
