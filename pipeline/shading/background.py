@@ -83,8 +83,11 @@ class BackgroundRenderer:
         floor_lo = lo - np.array([1.5, 0, 1.5]) * span
         floor_hi = hi + np.array([1.5, 0, 1.5]) * span
         tile = span / 8.0
-        self.scene.add(pyrender.Mesh.from_trimesh(_checker_floor(floor_lo, floor_hi, tile, lo[1] - 1e-3),
-                                                  smooth=False))
+        # one pyrender mesh of every surface, drawn in this order: the scene keeps its meshes in a
+        # set, whose order changed from process to process, and the pixels on a seam where two
+        # meshes meet at one depth went to whichever was drawn first, so frames were not reproducible
+        primitives = list(pyrender.Mesh.from_trimesh(_checker_floor(floor_lo, floor_hi, tile, lo[1] - 1e-3),
+                                                     smooth=False).primitives)
         wall = 0.02 * span
         walls = [  # back wall and the two side walls of the container (the front stays open)
             ((lo[0] - wall, lo[1], lo[2] - wall), (hi[0] + wall, hi[1], lo[2]), (170, 180, 190, 255)),
@@ -92,7 +95,7 @@ class BackgroundRenderer:
             ((hi[0], lo[1], lo[2]), (hi[0] + wall, hi[1] * 0.5, hi[2]), (150, 160, 175, 255)),
         ]
         for a, b, c in walls if around.walls else ():
-            self.scene.add(pyrender.Mesh.from_trimesh(_box(a, b, c), smooth=False))
+            primitives += pyrender.Mesh.from_trimesh(_box(a, b, c), smooth=False).primitives
         import trimesh
 
         for ob in around.obstacles:
@@ -102,7 +105,8 @@ class BackgroundRenderer:
                 m.visual.vertex_colors = (210, 120, 60, 255)
             else:
                 m = _box(ob.lo, ob.hi, (210, 120, 60, 255))
-            self.scene.add(pyrender.Mesh.from_trimesh(m, smooth=ob.shape == "sphere"))
+            primitives += pyrender.Mesh.from_trimesh(m, smooth=ob.shape == "sphere").primitives
+        self.scene.add(pyrender.Mesh(primitives=primitives))
         self.scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=p.light_intensity),
                        pose=_light_pose(p.light_dir))
         self.renderer = pyrender.OffscreenRenderer(width, height)
