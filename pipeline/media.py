@@ -8,8 +8,12 @@ import numpy as np
 
 from pipeline.cache import atomic_path, write_failure
 
+FRAME_PNG_LEVEL = 1
+"""zlib level of per-frame PNGs (previews, comparisons). Lossless at any level; 1 took 63 ms for a
+512 x 2560 comparison frame where Pillow's default 6 took 176 ms, for a file 15% larger."""
 
-def write_png(path: Path, image: np.ndarray) -> None:
+
+def write_png(path: Path, image: np.ndarray, compress_level: int = FRAME_PNG_LEVEL) -> None:
     """Write an 8-bit RGB(A) image atomically.
 
     Pillow directly rather than through imageio, whose plugin object, when a write fails (disk
@@ -17,7 +21,7 @@ def write_png(path: Path, image: np.ndarray) -> None:
     from PIL import Image
 
     with atomic_path(Path(path)) as tmp, open(tmp, "wb") as fh:
-        Image.fromarray(np.ascontiguousarray(image)).save(fh, format="PNG")
+        Image.fromarray(np.ascontiguousarray(image)).save(fh, format="PNG", compress_level=compress_level)
 
 
 def label(image: np.ndarray, text: str) -> np.ndarray:
@@ -37,7 +41,7 @@ def contact_sheet(path: Path, tiles: list[Path]) -> None:
     import imageio.v3 as iio
 
     rows = [iio.imread(p)[..., :3] for p in tiles]
-    write_png(path, np.concatenate(rows, axis=0))
+    write_png(path, np.concatenate(rows, axis=0), compress_level=6)  # one image, kept in docs: Pillow's default
 
 
 def write_video(path: Path, frames: list[Path], fps: float) -> None:

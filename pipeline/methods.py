@@ -153,16 +153,23 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method == "refined" and refiner is None:
         raise ValueError("the refined method needs a generator")
     cache = frame_cache if frame_cache is not None else {}
+
+    def sphere_thickness() -> np.ndarray:
+        """The sphere splat's thickness of this view (the shader's absorption for the methods that
+        make their own normals and depth): another method's of the same view, or a splat alone."""
+        seen, thickness = cache.get("sphere_thickness", (None, None))
+        if seen is not camera:
+            with t("inputs"):
+                thickness = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=())["thickness"]
+            cache["sphere_thickness"] = (camera, thickness)
+        return thickness
+
     if method == "metaball":
         if metaball is None:
             raise ValueError("the metaball method needs a metaball generator")
-        seen, thickness = cache.get("sphere_thickness", (None, None))
-        if seen is not camera:  # the spheres' thickness, for the shader's absorption
-            with t("inputs"):
-                thickness = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=())["thickness"]
         with t("metaball"):
             g = metaball.gbuffers(positions, radius, camera, launch)
-        return {"normals": g["normals"], "depth": g["depth"], "mask": g["mask"], "thickness": thickness}
+        return {"normals": g["normals"], "depth": g["depth"], "mask": g["mask"], "thickness": sphere_thickness()}
 
     def kernels():
         if "kernels" not in cache:
@@ -171,26 +178,6 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
                                                        ss.device)
         return cache["kernels"]
 
-    if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
-        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels())
-        aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
-        with t("inputs"):
-            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
-                                     aniso_filters=aniso_filter)
-        if method != "refined":
-            return method_maps(method, ch)
-    else:
-        screen_filter = "bilateral" if method in ("refined", "mesh") else method
-        with t("inputs"):
-            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
-        cache["sphere_thickness"] = (camera, ch["thickness"])  # the same splat's for every method of this view
-    if method == "refined":
-        names = input_channels(refiner.splat)
-        with t("refiner"):
-            n, mask = refine(refiner, ch, threshold, camera.focal_px, radius)
-        return {"normals": n, "depth": extend_depth(ch[names.blurred], mask), "mask": mask.astype(np.float32),
-                "thickness": ch[names.thickness]}
-    thickness = ch["thickness"]
     if method == "mesh":
         with t("mesh"):
             if filters.target == "raytrace":
@@ -200,7 +187,26 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
                     cache["mesh"] = reconstruct(positions, radius, filters, launch, ss.device, kernels())
                 tc = target_channels(cache["mesh"], camera, launch)
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
-        return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": thickness}
+        return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": sphere_thickness()}
+    if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
+        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels())
+        aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
+        with t("inputs"):
+            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
+                                     aniso_filters=aniso_filter)
+        if method != "refined":
+            return method_maps(method, ch)
+    else:
+        screen_filter = "bilateral" if method == "refined" else method
+        with t("inputs"):
+            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
+        cache["sphere_thickness"] = (camera, ch["thickness"])  # the same splat's for every method of this view
+    if method == "refined":
+        names = input_channels(refiner.splat)
+        with t("refiner"):
+            n, mask = refine(refiner, ch, threshold, camera.focal_px, radius)
+        return {"normals": n, "depth": extend_depth(ch[names.blurred], mask), "mask": mask.astype(np.float32),
+                "thickness": ch[names.thickness]}
     return method_maps(method, ch)
 
 

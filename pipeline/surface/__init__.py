@@ -186,7 +186,7 @@ def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, ve
     reach = float(extents.numpy().max())
     grid = hash_grid(centres, centres.numpy(), reach, device)
     out = wp.zeros(len(vertices), dtype=wp.vec3, device=device)
-    launch(K.density_gradient_normals, len(vertices), [grid.id, centres, kernel_g, reach,
+    launch(K.density_gradient_normals, len(vertices), [grid.id, centres, kernel_g, extents, reach,
                                                        wp.array(vertices, dtype=wp.vec3, device=device), out])
     return out.numpy()
 
@@ -270,7 +270,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     out_t = wp.zeros(w * h, dtype=float, device=device)
     rot = camera.cam_to_world[:3, :3].astype(np.float32)
     launch(K.raymarch_density, w * h, [
-        grid.id, centres, g, reach, amplitude, p.iso_level, wp.vec3(*camera.eye.astype(np.float32)),
+        grid.id, centres, g, extents, reach, amplitude, p.iso_level, wp.vec3(*camera.eye.astype(np.float32)),
         wp.mat33(*rot.ravel()), w, h, camera.focal_px, wp.array(t_start.ravel(), dtype=float, device=device),
         wp.vec3(*(c.min(0) - reach)), wp.vec3(*(c.max(0) + reach)), p.raytrace_step_radii * radius,
         p.raytrace_bisections, int(with_thickness), out_n, out_d, out_t])
