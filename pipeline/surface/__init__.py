@@ -72,6 +72,46 @@ def hash_grid(points: wp.array, host_points: np.ndarray, cell: float, device: st
     return grid
 
 
+WIDE_KERNEL_QUANTILE = 0.99
+"""Kernels whose bounding radius exceeds this quantile of all of them go into ``KernelLookup``'s
+wide grid (on the dam break the largest is 1.5x the 99th percentile, which the narrow grid's
+query radius would otherwise have to reach)."""
+
+
+class KernelLookup:
+    """The anisotropic kernels in two hash grids, for sums at arbitrary points (mesh normals, ray
+    marching): the narrow ones queried with their largest bounding radius, the few wide ones in a
+    grid of their own with theirs. A single grid must be queried with the largest radius of all,
+    which visits about 3x the candidates, nearly all of them too far to contribute.
+
+    ``args()`` are the kernels' arguments narrow .. extents, in ``kernels.kernel_sum``'s order: the
+    kernels reordered narrow first (each class in its original order, so sums are reproducible)."""
+
+    def __init__(self, kernels: tuple[wp.array, wp.array, wp.array], device: str):
+        centres, g, extents = kernels
+        e = extents.numpy()
+        cut = float(np.quantile(e, WIDE_KERNEL_QUANTILE))
+        wide = e > cut
+        order = np.concatenate([np.flatnonzero(~wide), np.flatnonzero(wide)])
+        c = centres.numpy()[order]
+        self.centres = wp.array(c, dtype=wp.vec3, device=device)
+        self.g = wp.array(g.numpy()[order], dtype=wp.mat33, device=device)
+        self.extents = wp.array(e[order], dtype=float, device=device)
+        self.wide_start = int((~wide).sum())
+        self.narrow_reach = float(e[~wide].max())
+        self.narrow = hash_grid(self.centres[: self.wide_start], c[: self.wide_start], self.narrow_reach, device)
+        if wide.any():
+            self.wide_reach = float(e[wide].max())
+            self.wide = hash_grid(self.centres[self.wide_start:], c[self.wide_start:], self.wide_reach, device)
+        else:  # no wide kernels: kernel_sum skips the second grid
+            self.wide_reach, self.wide = -1.0, self.narrow
+
+    def args(self) -> list:
+        """narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents."""
+        return [self.narrow.id, self.narrow_reach, self.wide.id, self.wide_reach, self.wide_start, self.centres,
+                self.g, self.extents]
+
+
 def _empty() -> SurfaceMesh:
     return SurfaceMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
 
@@ -183,11 +223,10 @@ def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volum
 def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, vertices: np.ndarray,
                     launch: Launcher, device: str) -> np.ndarray:
     """Outward unit normals of the anisotropic density at the given points (analytic gradient)."""
-    reach = float(extents.numpy().max())
-    grid = hash_grid(centres, centres.numpy(), reach, device)
+    lookup = KernelLookup((centres, kernel_g, extents), device)
     out = wp.zeros(len(vertices), dtype=wp.vec3, device=device)
-    launch(K.density_gradient_normals, len(vertices), [grid.id, centres, kernel_g, extents, reach,
-                                                       wp.array(vertices, dtype=wp.vec3, device=device), out])
+    launch(K.density_gradient_normals, len(vertices),
+           [*lookup.args(), wp.array(vertices, dtype=wp.vec3, device=device), out])
     return out.numpy()
 
 
@@ -252,7 +291,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
 
     Each ray starts where it enters the first kernel support (a splat of the support spheres), steps
     ``raytrace_step_radii`` particle radii, and refines the first iso crossing by bisection. Only
-    the kernels within the largest support of each sample are summed (a hash grid)."""
+    the kernels near each sample are summed (``KernelLookup``)."""
     device = device or launch.device
     w, h = camera.width, camera.height
     centres, g, extents = kernels
@@ -263,14 +302,14 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     supports = Ellipsoids(c, (np.eye(3, dtype=np.float32)[None] / e[:, None, None]).astype(np.float32), e)
     t_start = ss.splat_ellipsoids(supports, camera, normals=False).depth
     reach = float(e.max())
-    grid = hash_grid(centres, c, reach, device)
+    lookup = KernelLookup(kernels, device)
     amplitude = particle_volume(radius) * POLY6_NORM
     out_n = wp.zeros(w * h, dtype=wp.vec3, device=device)
     out_d = wp.zeros(w * h, dtype=float, device=device)
     out_t = wp.zeros(w * h, dtype=float, device=device)
     rot = camera.cam_to_world[:3, :3].astype(np.float32)
     launch(K.raymarch_density, w * h, [
-        grid.id, centres, g, extents, reach, amplitude, p.iso_level, wp.vec3(*camera.eye.astype(np.float32)),
+        *lookup.args(), amplitude, p.iso_level, wp.vec3(*camera.eye.astype(np.float32)),
         wp.mat33(*rot.ravel()), w, h, camera.focal_px, wp.array(t_start.ravel(), dtype=float, device=device),
         wp.vec3(*(c.min(0) - reach)), wp.vec3(*(c.max(0) + reach)), p.raytrace_step_radii * radius,
         p.raytrace_bisections, int(with_thickness), out_n, out_d, out_t])

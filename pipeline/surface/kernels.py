@@ -179,19 +179,20 @@ def raycast_mesh(
 
 
 @wp.func
-def kernel_sum(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
-               extents: wp.array(dtype=float), reach: float, x: wp.vec3, gradient: int) -> wp.vec4:
-    """(sum_j det(G_j) P(|G_j r|), and with ``gradient`` its gradient) at x, r = x - c_j, P the
-    poly6 profile (1 - q^2)^3 with grad det(G) P = -6 det(G) (1 - q^2)^2 G^T G r.
+def grid_kernel_sum(grid: wp.uint64, reach: float, base: int, centres: wp.array(dtype=wp.vec3),
+                    kernel_g: wp.array(dtype=wp.mat33), extents: wp.array(dtype=float), x: wp.vec3,
+                    gradient: int) -> wp.vec4:
+    """``kernel_sum`` over the kernels of one hash grid (its points are kernels base, base + 1, ...).
 
     A kernel is nonzero only within its bounding radius e_j (|G_j r| >= |r| / e_j), so candidates
-    further away are skipped before the matrix product: most of them, as e_j averages about half
-    the query's reach (the largest e_j). The 0.1% margin keeps every kernel with |G_j r| < 1."""
+    further away are skipped before the matrix product. The 0.1% margin keeps every kernel with
+    |G_j r| < 1."""
     phi = float(0.0)
     grad = wp.vec3(0.0, 0.0, 0.0)
     q = wp.hash_grid_query(grid, x, reach)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
+    k = int(0)
+    while wp.hash_grid_query_next(q, k):
+        j = base + k
         r = x - centres[j]
         e = extents[j]
         if wp.dot(r, r) >= e * e * 1.001:
@@ -209,28 +210,50 @@ def kernel_sum(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.a
 
 
 @wp.func
-def density_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
-               extents: wp.array(dtype=float), reach: float, amplitude: float, x: wp.vec3) -> float:
-    """phi(x) = sum_j V det(G_j) P(|G_j (x - c_j)|), with amplitude = V times the poly6 norm."""
-    return kernel_sum(grid, centres, kernel_g, extents, reach, x, 0)[0] * amplitude
+def kernel_sum(narrow: wp.uint64, narrow_reach: float, wide: wp.uint64, wide_reach: float, wide_start: int,
+               centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33), extents: wp.array(dtype=float),
+               x: wp.vec3, gradient: int) -> wp.vec4:
+    """(sum_j det(G_j) P(|G_j r|), and with ``gradient`` its gradient) at x, r = x - c_j, P the
+    poly6 profile (1 - q^2)^3 with grad det(G) P = -6 det(G) (1 - q^2)^2 G^T G r.
+
+    The kernels come as ``KernelLookup`` sorts them: the narrow ones (0 .. wide_start - 1) in one
+    hash grid queried with their largest bounding radius, the few wide ones in another queried with
+    theirs (none when wide_reach < 0)."""
+    s = grid_kernel_sum(narrow, narrow_reach, 0, centres, kernel_g, extents, x, gradient)
+    if wide_reach >= 0.0:
+        s += grid_kernel_sum(wide, wide_reach, wide_start, centres, kernel_g, extents, x, gradient)
+    return s
 
 
 @wp.func
-def density_gradient_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
-                        extents: wp.array(dtype=float), reach: float, x: wp.vec3) -> wp.vec3:
+def density_at(narrow: wp.uint64, narrow_reach: float, wide: wp.uint64, wide_reach: float, wide_start: int,
+               centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33), extents: wp.array(dtype=float),
+               amplitude: float, x: wp.vec3) -> float:
+    """phi(x) = sum_j V det(G_j) P(|G_j (x - c_j)|), with amplitude = V times the poly6 norm."""
+    s = kernel_sum(narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents, x, 0)
+    return s[0] * amplitude
+
+
+@wp.func
+def density_gradient_at(narrow: wp.uint64, narrow_reach: float, wide: wp.uint64, wide_reach: float, wide_start: int,
+                        centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+                        extents: wp.array(dtype=float), x: wp.vec3) -> wp.vec3:
     """The direction of grad phi at x (without the constant V times the poly6 norm)."""
-    s = kernel_sum(grid, centres, kernel_g, extents, reach, x, 1)
+    s = kernel_sum(narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents, x, 1)
     return wp.vec3(s[1], s[2], s[3])
 
 
 @wp.kernel
 def density_gradient_normals(
     offset: int,
-    grid: wp.uint64,
+    narrow: wp.uint64,
+    narrow_reach: float,
+    wide: wp.uint64,
+    wide_reach: float,
+    wide_start: int,
     centres: wp.array(dtype=wp.vec3),
     kernel_g: wp.array(dtype=wp.mat33),
     extents: wp.array(dtype=float),
-    reach: float,
     vertices: wp.array(dtype=wp.vec3),
     normals_out: wp.array(dtype=wp.vec3),
 ):
@@ -241,7 +264,8 @@ def density_gradient_normals(
     grad V det(G) (1 - |G r|^2)^3 = -6 V det(G) (1 - |G r|^2)^2 G^T G r, with r = x - c.
     """
     k = wp.tid() + offset
-    grad = density_gradient_at(grid, centres, kernel_g, extents, reach, vertices[k])
+    grad = density_gradient_at(narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents,
+                               vertices[k])
     ln = wp.length(grad)
     if ln > 0.0:
         normals_out[k] = -grad / ln
@@ -252,11 +276,14 @@ def density_gradient_normals(
 @wp.kernel
 def raymarch_density(
     offset: int,
-    grid: wp.uint64,
+    narrow: wp.uint64,
+    narrow_reach: float,
+    wide: wp.uint64,
+    wide_reach: float,
+    wide_start: int,
     centres: wp.array(dtype=wp.vec3),
     kernel_g: wp.array(dtype=wp.mat33),
     extents: wp.array(dtype=float),
-    reach: float,
     amplitude: float,
     iso: float,
     eye: wp.vec3,
@@ -311,7 +338,8 @@ def raymarch_density(
     thick = float(0.0)
     while t < t_end:
         t_next = t + step
-        phi = density_at(grid, centres, kernel_g, extents, reach, amplitude, eye + d * t_next)
+        phi = density_at(narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents, amplitude,
+                         eye + d * t_next)
         now_inside = phi >= iso
         if now_inside != inside:
             # bisection for the crossing in (t, t_next]
@@ -319,7 +347,9 @@ def raymarch_density(
             tb = t_next
             for _ in range(bisections):
                 tm = 0.5 * (ta + tb)
-                if (density_at(grid, centres, kernel_g, extents, reach, amplitude, eye + d * tm) >= iso) == now_inside:
+                phi_m = density_at(narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents,
+                                   amplitude, eye + d * tm)
+                if (phi_m >= iso) == now_inside:
                     tb = tm
                 else:
                     ta = tm
@@ -338,7 +368,8 @@ def raymarch_density(
         return
     if inside:
         thick += t_end
-    grad = density_gradient_at(grid, centres, kernel_g, extents, reach, eye + d * t_hit)
+    grad = density_gradient_at(narrow, narrow_reach, wide, wide_reach, wide_start, centres, kernel_g, extents,
+                               eye + d * t_hit)
     n = wp.transpose(cam_to_world) * (-grad)
     ln = wp.length(n)
     if ln > 0.0:
