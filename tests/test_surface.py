@@ -127,3 +127,48 @@ def test_warp_marching_cubes_gives_the_scikit_image_surface(device):
     assert len(v) == len(ref_v) and cKDTree(ref_v).query(v)[0].max() < 1e-5, "the same vertices"
     r = np.sqrt(v[:, 0] ** 2 + v[:, 1] ** 2 + (v[:, 2] / 0.7) ** 2)
     assert abs(r.mean() - np.sqrt(0.5)) < 2e-3
+
+
+def _brute_force_density(centres, g, points):
+    """sum_j det(G_j) (1 - |G_j (x - c_j)|^2)^3 and its gradient at each point, over every kernel."""
+    r = points[:, None, :] - centres[None]                    # P x N x 3
+    u = np.einsum("nij,pnj->pni", g, r)
+    q2 = (u * u).sum(-1)
+    inside = q2 < 1.0
+    t = np.where(inside, 1.0 - q2, 0.0)
+    det = np.linalg.det(g)[None]
+    phi = (det * t ** 3).sum(1)
+    grad = (np.einsum("nji,pnj->pni", g, u) * (-6.0 * det * t * t)[..., None]).sum(1)
+    return phi, grad
+
+
+@pytest.mark.parametrize("spread", [0.0, 1.0])
+def test_kernel_sums_reach_every_kernel_that_covers_a_point(launch, spread):
+    """``KernelLookup`` splits the kernels into a narrow grid and a wide one, each queried with its
+    own largest radius: its normals are the brute-force sum's over all kernels, with kernels of one
+    size (no wide grid) and of sizes spread 1-3x (the widest few in the wide grid); a wide kernel
+    missed by its grid, or counted twice, would turn them."""
+    import warp as wp
+
+    from pipeline.surface import KernelLookup, density_normals
+
+    rng = np.random.default_rng(3)
+    n = 400
+    centres = rng.uniform(-0.1, 0.1, (n, 3)).astype(np.float32)
+    scale = 0.03 * (1.0 + spread * 2.0 * rng.random(n) ** 8)          # a long tail of wide kernels
+    rot = np.linalg.qr(rng.normal(size=(n, 3, 3)))[0]
+    axes = scale[:, None] * np.array([1.0, 0.6, 0.3])[None]
+    g = np.einsum("nij,nj,nkj->nik", rot, 1.0 / axes, rot).astype(np.float32)  # |G r| <= 1 inside
+    extents = axes.max(1).astype(np.float32)
+    dev = launch.device
+    kernels = (wp.array(centres, dtype=wp.vec3, device=dev), wp.array(g, dtype=wp.mat33, device=dev),
+               wp.array(extents, dtype=float, device=dev))
+    lookup = KernelLookup(kernels, dev)
+    assert (lookup.wide_reach > 0) == (spread > 0)
+    points = rng.uniform(-0.1, 0.1, (300, 3)).astype(np.float32)
+    phi, grad = _brute_force_density(centres.astype(np.float64), g.astype(np.float64), points.astype(np.float64))
+    covered = phi > 1e-3
+    want = -grad[covered] / np.linalg.norm(grad[covered], axis=1, keepdims=True)
+    got = density_normals(*kernels, points[covered], launch, dev)
+    assert covered.sum() > 100
+    np.testing.assert_allclose(got, want, atol=2e-4)
