@@ -43,7 +43,14 @@ def compute_anisotropy(
     q = wp.hash_grid_query(grid, xi, support)
     wsum = float(0.0)
     wr = wp.vec3(0.0, 0.0, 0.0)
-    wrr = wp.mat33(0.0)
+    # the six distinct entries of sum w r r^T (the products are those of wp.outer, so the mirrored
+    # matrix below is bit for bit the full one, for two thirds of the work)
+    wxx = float(0.0)
+    wxy = float(0.0)
+    wxz = float(0.0)
+    wyy = float(0.0)
+    wyz = float(0.0)
+    wzz = float(0.0)
     count = int(0)
     j = int(0)
     support2 = support * support
@@ -55,8 +62,14 @@ def compute_anisotropy(
             w = 1.0 - t * t * t
             wsum += w
             wr += r * w
-            wrr += wp.outer(r, r) * w
+            wxx += r[0] * r[0] * w
+            wxy += r[0] * r[1] * w
+            wxz += r[0] * r[2] * w
+            wyy += r[1] * r[1] * w
+            wyz += r[1] * r[2] * w
+            wzz += r[2] * r[2] * w
             count += 1
+    wrr = wp.mat33(wxx, wxy, wxz, wxy, wyy, wyz, wxz, wyz, wzz)
     mean_r = wr / wsum
     centre_out[i] = xi + mean_r * smoothing
     if count - 1 < n_eps:
