@@ -110,6 +110,53 @@ def test_empty_frame_gives_empty_maps(launch):
     assert not n.any() and not d.any() and not m.any()
 
 
+def test_maps_from_inside_a_sphere_clip_the_triangles_behind_the_eye(launch):
+    """From the centre of a sphere every pixel sees its inside at distance R along the pixel's ray:
+    view depth R / |ray| with the ray scaled to z = -1, and a normal along the ray. Most triangles
+    straddle or lie behind the eye's plane, so their screen boxes come from the clipped triangle."""
+    import trimesh
+
+    from pipeline.surface import SurfaceMesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.5)
+    mesh = SurfaceMesh(sphere.vertices.astype(np.float32), sphere.faces.astype(np.int32),
+                       sphere.vertex_normals.astype(np.float32))
+    cam = Camera(look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0)), 100.0, 96, 64)
+    normals, depth, mask = render_maps(mesh, cam, launch)
+    assert mask.all(), "no pixel slips between triangles"
+    cols, rows = np.meshgrid(np.arange(96) + 0.5 - 48, np.arange(64) + 0.5 - 32)
+    ray = np.stack([cols / cam.focal_px, -rows / cam.focal_px, -np.ones_like(cols)], -1)
+    length = np.linalg.norm(ray, axis=-1)
+    np.testing.assert_allclose(depth, 0.5 / length, rtol=2e-3)  # the facets lie within 0.1% of the sphere
+    along = (normals * ray).sum(-1) / length
+    assert along.min() > 0.999, "outward normals point along the ray"
+
+
+def test_maps_do_not_depend_on_the_thread_split_and_ties_go_to_the_first_triangle():
+    """Two copies of every triangle at the same place, the second with flipped normals: each pixel
+    must take the first copy (the lower index) whichever thread's chunk saw which, and one thread
+    must give the same maps as several."""
+    from pipeline.parallel import Launcher
+    from pipeline.surface import SurfaceMesh
+
+    several, one = Launcher("cpu", threads=3), Launcher("cpu", threads=1)
+    try:
+        base = reconstruct(_lattice_ball(0.15), R, DatasetConfig(), one)
+        n = len(base.vertices)
+        twice = SurfaceMesh(np.concatenate([base.vertices, base.vertices]),
+                            np.concatenate([base.faces, base.faces + n]), np.concatenate([base.normals, -base.normals]))
+        cam = Camera(look_at((0.0, 0.1, 0.8), (0, 0, 0)), 35.0, 128, 128)
+        many, single, ref = (render_maps(m, cam, r) for m, r in ((twice, several), (twice, one), (base, one)))
+        assert len(several.split(len(twice.faces))) > 1, "the triangles were split over threads"
+    finally:
+        several.close()
+        one.close()
+    for a, b in zip(many, single, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(many[0], ref[0])  # the first copy's normals, not the flipped ones
+    assert many[2].sum() > 2000
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.cuda)])
 def test_warp_marching_cubes_gives_the_scikit_image_surface(device):
     """The Warp backend (the default on CUDA) extracts the same vertices and as many triangles as

@@ -148,47 +148,144 @@ def splat_density(
                     density[(ix * ny + iy) * nz + iz] += amp * t * t * t
 
 
+NO_TRIANGLE = wp.constant(2147483647)
+"""A pixel no triangle covers, in ``raster_mesh``'s triangle buffer."""
+
+
+@wp.func
+def pixel_ray(col: int, row: int, width: int, height: int, focal: float) -> wp.vec3:
+    """The view-space ray through a pixel's centre, scaled to z = -1 (its t is the view depth)."""
+    return wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal,
+                   -(float(row) + 0.5 - float(height) * 0.5) / focal, -1.0)
+
+
+@wp.func
+def ray_triangle(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3) -> wp.vec3:
+    """(t, u, v) where the ray t d from the view origin meets triangle abc at a + u (b - a) + v (c - a)
+    (Moller-Trumbore); t = 0 where it misses. The barycentric bounds give by 1e-4 so that a ray
+    through an edge shared by two triangles cannot slip between them by rounding."""
+    e1 = b - a
+    e2 = c - a
+    pv = wp.cross(d, e2)
+    det = wp.dot(e1, pv)
+    if wp.abs(det) < 1.0e-30:
+        return wp.vec3(0.0, 0.0, 0.0)
+    inv = 1.0 / det
+    tv = -a
+    u = wp.dot(tv, pv) * inv
+    if u < -1.0e-4 or u > 1.0001:
+        return wp.vec3(0.0, 0.0, 0.0)
+    qv = wp.cross(tv, e1)
+    v = wp.dot(d, qv) * inv
+    if v < -1.0e-4 or u + v > 1.0001:
+        return wp.vec3(0.0, 0.0, 0.0)
+    t = wp.dot(e2, qv) * inv
+    if t <= 0.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    return wp.vec3(t, u, v)
+
+
+@wp.func
+def clip_extend(p: wp.vec3, q: wp.vec3, near: float, box: wp.vec4, focal: float) -> wp.vec4:
+    """Grow the pixel-space box (col min, col max, row min, row max, before the image centre is
+    added) by vertex p if it lies in front of the near plane z = -near, and by the point where
+    edge pq crosses that plane."""
+    out = box
+    if p[2] <= -near:
+        x = focal * p[0] / -p[2]
+        y = -focal * p[1] / -p[2]
+        out = wp.vec4(wp.min(out[0], x), wp.max(out[1], x), wp.min(out[2], y), wp.max(out[3], y))
+    if (p[2] + near) * (q[2] + near) < 0.0:
+        s = (-near - p[2]) / (q[2] - p[2])
+        m = p + (q - p) * s
+        x = focal * m[0] / near
+        y = -focal * m[1] / near
+        out = wp.vec4(wp.min(out[0], x), wp.max(out[1], x), wp.min(out[2], y), wp.max(out[3], y))
+    return out
+
+
 @wp.kernel
-def raycast_mesh(
+def raster_mesh(
     offset: int,
-    mesh: wp.uint64,
-    vertex_normals: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.vec3),
     faces: wp.array(dtype=int),
-    eye: wp.vec3,
-    cam_to_world: wp.mat33,
     width: int,
     height: int,
     focal: float,
-    max_t: float,
+    near: float,
+    nearest: wp.array(dtype=float),
+    depth_out: wp.array(dtype=float),
+    triangle_out: wp.array(dtype=int),
+):
+    """Ray-cast every pixel of a triangle's screen box against the triangle (view-space vertices).
+
+    Two passes: ``triangle_out`` of length 0 keeps the nearest hit depth per pixel in
+    ``depth_out``; otherwise each pixel keeps the lowest-numbered triangle whose hit lies at
+    ``nearest``, the first pass's depth, so a tie goes the same way in any launch order. The box
+    comes from the triangle clipped to the near plane, so a triangle crossing it costs no more."""
+    f = wp.tid() + offset
+    a = vertices[faces[3 * f + 0]]
+    b = vertices[faces[3 * f + 1]]
+    c = vertices[faces[3 * f + 2]]
+    box = wp.vec4(1.0e30, -1.0e30, 1.0e30, -1.0e30)
+    box = clip_extend(a, b, near, box, focal)
+    box = clip_extend(b, c, near, box, focal)
+    box = clip_extend(c, a, near, box, focal)
+    if box[0] > box[1]:
+        return  # wholly behind the near plane
+    # pixel centres sit at whole numbers once the image centre is added: visit those inside the
+    # box, widened by 0.01 px (far more than the ray test's slack)
+    cx = float(width) * 0.5 - 0.5
+    cy = float(height) * 0.5 - 0.5
+    c0 = wp.max(int(wp.ceil(wp.max(box[0] + cx, -1.0) - 0.01)), 0)
+    c1 = wp.min(int(wp.floor(wp.min(box[1] + cx, float(width)) + 0.01)), width - 1)
+    r0 = wp.max(int(wp.ceil(wp.max(box[2] + cy, -1.0) - 0.01)), 0)
+    r1 = wp.min(int(wp.floor(wp.min(box[3] + cy, float(height)) + 0.01)), height - 1)
+    resolve = triangle_out.shape[0] > 0
+    for row in range(r0, r1 + 1):
+        for col in range(c0, c1 + 1):
+            hit = ray_triangle(a, b, c, pixel_ray(col, row, width, height, focal))
+            if hit[0] > 0.0:
+                idx = row * width + col
+                if resolve:
+                    if hit[0] == nearest[idx]:
+                        wp.atomic_min(triangle_out, idx, f)
+                else:
+                    wp.atomic_min(depth_out, idx, hit[0])
+
+
+@wp.kernel
+def raster_mesh_resolve(
+    offset: int,
+    vertices: wp.array(dtype=wp.vec3),
+    vertex_normals: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=int),
+    triangle: wp.array(dtype=int),
+    width: int,
+    height: int,
+    focal: float,
     normal_out: wp.array(dtype=wp.vec3),
     depth_out: wp.array(dtype=float),
 ):
-    """Cast one ray per pixel; write the interpolated view-space normal and the view depth."""
+    """Each pixel's interpolated unit normal (view space) and view depth from its nearest triangle."""
     idx = wp.tid() + offset
-    row = idx // width
-    col = idx - row * width
-    ray_view = wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal,
-                       -(float(row) + 0.5 - float(height) * 0.5) / focal, -1.0)
-    dir_world = cam_to_world * ray_view
-    length = wp.length(dir_world)
-    q = wp.mesh_query_ray(mesh, eye, dir_world / length, max_t)
-    if not q.result:
+    f = triangle[idx]
+    if f == NO_TRIANGLE:
         normal_out[idx] = wp.vec3(0.0, 0.0, 0.0)
         depth_out[idx] = 0.0
         return
-    f = q.face
-    n0 = vertex_normals[faces[3 * f + 0]]
-    n1 = vertex_normals[faces[3 * f + 1]]
-    n2 = vertex_normals[faces[3 * f + 2]]
-    n = n0 * q.u + n1 * q.v + n2 * (1.0 - q.u - q.v)
-    # world to view is the transpose of the camera rotation
-    nv = wp.transpose(cam_to_world) * n
-    ln = wp.length(nv)
+    row = idx // width
+    col = idx - row * width
+    i0 = faces[3 * f + 0]
+    i1 = faces[3 * f + 1]
+    i2 = faces[3 * f + 2]
+    hit = ray_triangle(vertices[i0], vertices[i1], vertices[i2], pixel_ray(col, row, width, height, focal))
+    n = vertex_normals[i0] * (1.0 - hit[1] - hit[2]) + vertex_normals[i1] * hit[1] + vertex_normals[i2] * hit[2]
+    ln = wp.length(n)
     if ln > 1.0e-12:
-        nv = nv / ln
-    normal_out[idx] = nv
-    # the view-space ray has z = -1, so the view depth is the hit distance over its length
-    depth_out[idx] = q.t / length
+        n = n / ln
+    normal_out[idx] = n
+    depth_out[idx] = hit[0]
 
 
 @wp.func
