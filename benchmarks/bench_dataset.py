@@ -19,6 +19,7 @@ import warp as wp
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import Cameras, DatasetConfig, FluidShape, SceneConfig, SimulateConfig, from_dict
+from pipeline.device import choose_device, warp_device
 from pipeline.parallel import Launcher
 from pipeline.particles import read_particles
 from pipeline.screen import ScreenSpace
@@ -61,16 +62,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--particles", type=int, default=50_000)
     parser.add_argument("--exact", action="store_true", help="the exact (pre-2026-11) filters instead of the fast")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                        help="where Warp runs (auto: CUDA when Warp and torch see a GPU; run cpu and cuda for both)")
     args = parser.parse_args()
     wp.config.quiet = True
+    device = warp_device(choose_device(args.device))
     p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
-    ss, launch = ScreenSpace("cpu"), Launcher("cpu")
+    ss, launch = ScreenSpace(device), Launcher(device)
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     frames = {"splishsplash dam break (6,859)": (read_particles(bgeo).positions, 0.025)}
     x50, r50 = _pbf_frame(args.particles)
     frames[f"PBF dam break ({len(x50):,})"] = (x50, r50)
 
-    print(f"screen-space inputs, ms per frame (2 threads, {p.filter_mode} filters)")
+    where = "CUDA" if device != "cpu" else f"CPU, {launch.threads} threads"
+    print(f"screen-space inputs on {where}, ms per frame ({p.filter_mode} filters)")
     print(f"{'frame':34s} {'size':>6s} {'splat':>7s} {'bilat':>7s} {'nrf':>7s} {'normals':>8s} {'ellipsoids':>10s} "
           f"{'ell. splat':>10s}")
     for name, (x, r) in frames.items():
@@ -124,10 +129,10 @@ def main() -> None:
 
     print("\nmarching cubes on the anisotropic density grid, seconds")
     for name, (x, r) in frames.items():
-        centres, g, ext = anisotropic_kernels(x, r, p, launch, "cpu")
-        grid, _ = density_grid(centres, g, ext, (2 * r) ** 3, r / p.grid_cells_per_radius, launch, "cpu")
+        centres, g, ext = anisotropic_kernels(x, r, p, launch, device)
+        grid, _ = density_grid(centres, g, ext, (2 * r) ** 3, r / p.grid_cells_per_radius, launch, device)
         t_sk, (v, f, _, _) = _ms(lambda grid=grid: measure.marching_cubes(grid, p.iso_level), repeat=2)
-        field = wp.array(grid.astype(np.float32), dtype=float)
+        field = wp.array(grid.astype(np.float32), dtype=float, device=device)
         t_wp, (wv, wf) = _ms(lambda field=field: IsoSurfaceMarchingCubes.extract(field, p.iso_level), repeat=2)
         print(f"{name:34s} grid {'x'.join(map(str, grid.shape)):>12s}  scikit-image {t_sk / 1000:5.2f} "
               f"({len(f):,} tris)  warp {t_wp / 1000:5.2f} ({len(wf) // 3:,} tris)")

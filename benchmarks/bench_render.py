@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
 
 from pipeline.config import DatasetConfig, RenderConfig  # noqa: E402
+from pipeline.device import choose_device, warp_device  # noqa: E402
 from pipeline.methods import normal_source, shade_frame  # noqa: E402
 from pipeline.model import SHIPPED_WEIGHTS  # noqa: E402
 from pipeline.model.data import InputSpec, prepare  # noqa: E402
@@ -92,7 +93,7 @@ def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpac
     channels = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",), ellipsoids=ellipsoids,
                                    aniso_filters=("bilateral",))
     inputs = prepare(channels, refiner.spec, cam.focal_px, r).inputs
-    row["plain_refiner"] = _best_ms(lambda: predict(generator, inputs), max(1, repeat // 2))
+    row["plain_refiner"] = _best_ms(lambda: predict(generator, inputs, refiner.device), max(1, repeat // 2))
     row["fast_refiner_nocrop"] = _best_ms(lambda: refiner(inputs), max(1, repeat // 2))
     # the render loop as the stage runs it: EXR writing on a background thread
     n = max(3, repeat)
@@ -144,21 +145,26 @@ def main() -> None:
     parser.add_argument("--plot", type=Path, help="write a log-log plot of the stage costs here")
     parser.add_argument("--json", type=Path, help="write the figures as JSON here")
     parser.add_argument("--demo", action="store_true", help="also time `make demo` in a fresh cache")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                        help="where Warp and torch run (auto: CUDA when both see a GPU; run cpu and cuda for both)")
     args = parser.parse_args()
+    device = choose_device(args.device)
+    wdev = warp_device(device)
     wp.config.quiet = True
     p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
     generator, meta = load_generator(SHIPPED_WEIGHTS)
     shipped = InputSpec.of(meta["config"])
-    refiner = Refiner(generator, spec=InputSpec(shipped.auxiliary, args.splat, shipped.features,
-                                                shipped.working_radius_px))
-    ss, launch, shader = ScreenSpace("cpu"), Launcher("cpu"), Shader("cpu")
+    generator = generator.to(device)
+    refiner = Refiner(generator, device=device, spec=InputSpec(shipped.auxiliary, args.splat, shipped.features,
+                                                               shipped.working_radius_px))
+    ss, launch, shader = ScreenSpace(wdev), Launcher(wdev), Shader(wdev)
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     x_pbf, r_pbf = _pbf_frame(50_000)
     frames = {"SPlisHSPlasH dam break, 6,859 particles (large)": (read_particles(bgeo).positions, 0.025),
               f"PBF dam break, {len(x_pbf):,} particles (small)": (x_pbf, r_pbf)}
     results: dict[str, dict[str, dict[str, float]]] = {}
-    print(f"filters: {p.filter_mode}; refiner input: {args.splat} splat; {torch.get_num_threads()} torch threads; "
-          "ms per frame (medians)")
+    where = "CUDA" if device == "cuda" else f"CPU, {torch.get_num_threads()} torch threads"
+    print(f"device: {where}; filters: {p.filter_mode}; refiner input: {args.splat} splat; ms per frame (medians)")
     head = (f"{'size':>5s} {'r_px':>5s} {'aniso':>6s} {'splat':>6s} {'bilat':>6s} {'normal':>6s} {'inputs':>7s} "
             f"{'shade':>6s} {'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'nocrop':>7s} "
             f"{'plain':>7s} {'speed-up':>8s}")
@@ -193,9 +199,10 @@ def main() -> None:
             config.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\ndata_dir: {Path(tmp) / 'data'}\n")
             start = time.perf_counter()
             subprocess.run([sys.executable, "-m", "stages.demo", "--config", str(config)], cwd=ROOT, check=True,
-                           env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL,
+                           env={**os.environ, "PYTHONPATH": str(ROOT), "DEEP_SSFR_DEVICE": device},
+                           stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL)
-            print(f"make demo (fresh cache, warm kernel cache): {time.perf_counter() - start:.0f} s")
+            print(f"make demo on {device} (fresh cache, warm kernel cache): {time.perf_counter() - start:.0f} s")
             shutil.rmtree(Path(tmp) / "data", ignore_errors=True)
 
 
