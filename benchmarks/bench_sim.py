@@ -9,7 +9,9 @@ A ratio is printed only against a peer measured in the same run, on the same mac
   threads: a Taichi 1.7.4 PBF of the identical problem (``peers/taichi_pbf.py``: the same
   algorithm and constants, Taichi's CPU backend), SPlisHSPlasH 2.19's PBF (4 iterations) and its
   DFSPH on the same block (``peers/splishsplash.py``, through the ``pysplishsplash`` wheel).
-  ``--repeat R`` alternates the whole round R times and reports medians.
+  ``--repeat R`` alternates the whole round R times and reports medians. ``--peers --device cuda``
+  runs the project's solver and Taichi's CUDA backend on the same GPU (the issue-13 comparison;
+  SPlisHSPlasH has no GPU backend and is left out).
 - ``--scaling``: the project, Taichi and SPlisHSPlasH's PBF at 10k, 50k, 200k and 1M particles,
   the same steps at every size, each in a fresh process: particle-steps/s and resident memory per
   particle, and a log-log plot (``--plot docs/images/sim_scaling.png``); about 8 minutes here.
@@ -27,7 +29,7 @@ The peers install with the ``bench`` extra (``pip install -e '.[bench]'``); with
 solver runs on the CPU, as they do.
 
     .venv/bin/python benchmarks/bench_sim.py [--particles 50000] [--steps 40] [--threads 0] [--profile]
-    .venv/bin/python benchmarks/bench_sim.py --peers [--repeat 3]
+    .venv/bin/python benchmarks/bench_sim.py --peers [--repeat 3] [--device cuda]
     .venv/bin/python benchmarks/bench_sim.py --scaling [--plot docs/images/sim_scaling.png]
     .venv/bin/python benchmarks/bench_sim.py --check
     .venv/bin/python benchmarks/bench_sim.py --gang [--repeat 10]
@@ -201,7 +203,7 @@ def describe(m: Measurement) -> str:
     """What a peer ran with, in a few words."""
     e = m.extra
     if "taichi" in e:
-        return "Taichi " + ".".join(map(str, e["taichi"])) + ", CPU backend"
+        return "Taichi " + ".".join(map(str, e["taichi"])) + f", {e.get('arch', 'cpu').upper()} backend"
     if "pysplishsplash" in e:
         its = ", ".join(f"{k.split(' - ')[-1]} {v:g}" for k, v in e["mean_iterations"].items())
         return f"pysplishsplash {e['pysplishsplash']}, mean {its}"
@@ -234,9 +236,13 @@ def print_side_by_side(rounds: list[list[Measurement]]) -> None:
 def peers_mode(args: argparse.Namespace, threads: int) -> None:
     print(header(threads, args.particles, args.steps))
     rounds = []
+    # on a GPU the peer is Taichi on the same GPU (SPlisHSPlasH runs on the CPU only)
+    device = warp_device(choose_device(args.device or "cpu"))
+    peers = [p for p in PEER_RUNS if device == "cpu" or p == "taichi"]
+    extra = [] if device == "cpu" else ["--arch", "cuda"]
     for r in range(args.repeat):
-        project, _ = measure_project(args.particles, args.steps, threads, "cpu")
-        results = [project] + [run_peer(peer, args.particles, args.steps, threads) for peer in PEER_RUNS]
+        project, _ = measure_project(args.particles, args.steps, threads, device)
+        results = [project] + [run_peer(peer, args.particles, args.steps, threads, extra=extra) for peer in peers]
         rounds.append(results)
         print(f"round {r + 1}/{args.repeat}: " + ", ".join(f"{m.name} {m.steps_per_s:.2f}" for m in results)
               + f" steps/s; load average {load()}", flush=True)
@@ -442,6 +448,9 @@ def main() -> None:
                         help="--check: a Taichi run with this parameter changed, which the check must tell apart")
     parser.add_argument("--json", action="store_true", help="print the project's measurement as one JSON line")
     parser.add_argument("--gang", action="store_true", help="the gang launch against phase-by-phase launches")
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"),
+                        help="where the project's solver runs (default: auto; cpu with --peers, whose --device cuda "
+                             "runs Taichi on the same GPU)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING  # no greeting or module-load lines
     threads = args.threads or os.cpu_count() or 1
@@ -454,7 +463,7 @@ def main() -> None:
     elif args.gang:
         gang_mode(args, threads)
     else:
-        device = warp_device(choose_device("auto")) if not args.json else "cpu"
+        device = warp_device(choose_device(args.device or "auto")) if not args.json else "cpu"
         result, kernels = measure_project(args.particles, args.steps, threads, device, args.warmup, args.profile)
         if args.json:
             print(result.to_json())

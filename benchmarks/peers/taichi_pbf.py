@@ -335,6 +335,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=dam_break.WARMUP_STEPS, help="untimed steps first")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0: one per core)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--arch", choices=("cpu", "cuda"), default="cpu", help="Taichi's backend")
     parser.add_argument("--state", help="write positions, velocities and densities after the run (.npz)")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                         help="change a solver parameter (SimulateConfig field), e.g. iterations=2")
@@ -342,7 +343,10 @@ def main() -> None:
     threads = args.threads or os.cpu_count() or 1
     import taichi as ti
 
-    ti.init(arch=ti.cpu, cpu_max_num_threads=threads, default_fp=ti.f32, log_level=ti.WARN)
+    if args.arch == "cuda":
+        ti.init(arch=ti.cuda, default_fp=ti.f32, log_level=ti.WARN)
+    else:
+        ti.init(arch=ti.cpu, cpu_max_num_threads=threads, default_fp=ti.f32, log_level=ti.WARN)
     scene, p = dam_break.scene(), dam_break.params(args.particles, threads)
     for item in args.set:
         key, _, value = item.partition("=")
@@ -359,7 +363,8 @@ def main() -> None:
         x, v, rho = solver.state()
         np.savez(args.state, x=x, v=v, rho=rho, steps=args.warmup + args.steps)
     print(dam_break.Measurement("Taichi PBF", solver.n, args.steps, seconds, rates, memory, threads,
-                                {"taichi": ti.__version__, "field_bytes": solver.field_bytes()}).to_json())
+                                {"taichi": ti.__version__, "field_bytes": solver.field_bytes(),
+                                 "arch": args.arch}).to_json())
 
 
 if __name__ == "__main__":
