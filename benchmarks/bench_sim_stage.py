@@ -6,6 +6,7 @@ prints both in steps/s and their ratio. On a GPU the per-frame work is what cost
 at least 80%).
 
     .venv/bin/python benchmarks/bench_sim_stage.py [--config configs/default.yaml] [--scene dam_break]
+                                                   [--frames 100] [--particle-radius 0.00888]
 """
 
 from __future__ import annotations
@@ -30,10 +31,12 @@ from stages import cli
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def solver_alone(config: str, scene: str, frames: int) -> tuple[float, int]:
+def solver_alone(config: str, scene: str, frames: int, radius: float | None) -> tuple[float, int]:
     """Steps per second of the bare solver (after three warm-up frames) and its particle count."""
     loaded = load(config, only_scene=scene)
     params = dataclasses.replace(loaded.config.simulate, frames=frames)
+    if radius:
+        params = dataclasses.replace(params, particle_radius=radius)
     solver = PBFSolver(loaded.scenes[scene], params, warp_device(choose_device(loaded.config.device)), seed=0)
     for f in range(1, 4):
         solver.advance_frame(f)
@@ -52,13 +55,17 @@ def main() -> None:
     parser.add_argument("--config", default=str(ROOT / "configs" / "default.yaml"))
     parser.add_argument("--scene", default="dam_break")
     parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--particle-radius", type=float,
+                        help="simulate.particle_radius (m); 0.00888 gives the dam break 50k particles (issue 13)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
-    alone, n = solver_alone(args.config, args.scene, args.frames)
+    alone, n = solver_alone(args.config, args.scene, args.frames, args.particle_radius)
     with tempfile.TemporaryDirectory() as tmp:
         body = yaml.safe_load(Path(args.config).read_text())
         body.update(data_dir=tmp, scene_dir=str(Path(args.config).resolve().parent / body.get("scene_dir", "scenes")))
         body.setdefault("simulate", {})["frames"] = args.frames
+        if args.particle_radius:
+            body["simulate"]["particle_radius"] = args.particle_radius
         config = Path(tmp) / "config.yaml"
         config.write_text(yaml.safe_dump(body))
         stream = io.StringIO()

@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Issue 13's GPU measurements in one run on the GPU machine (the `device` tool), about 8 minutes:
+# the cuda-marked tests, the simulator against its own stage at 50k particles, the dataset and
+# render benchmarks on CUDA, and Taichi side by side on the same GPU when its wheel came along.
+# Each step writes OUT/<step>.txt and prints its exit status and last line, so one failing step
+# costs only itself. After `source .gpu/py/boot.sh` (../shared/gpu/README.md), from the repo root:
+#
+#     bash benchmarks/gpu_check.sh            # OUT defaults to $OUT (the device tool's) or /tmp/gpu_check
+#
+# GPU_CHECK_DEVICE=cpu runs the same steps on the CPU (a dry run of the script; minutes longer).
+#
+# Stage Taichi with the rest (GPU_EXTRA_WHEELS=taichi==1.7.4 bash ../shared/gpu/stage.sh) for the
+# side-by-side step; it is skipped without it. The nccl path of `make train-ddp` needs one GPU per
+# process, so a one-GPU machine cannot run it (a world of one process makes no process group).
+set -uo pipefail
+OUT=${OUT:-/tmp/gpu_check}
+PY=${PYTHON:-python3}
+DEVICE=${GPU_CHECK_DEVICE:-cuda}
+mkdir -p "$OUT"
+export DEEP_SSFR_DEVICE=$DEVICE PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
+
+step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output
+    local name=$1 limit=$2
+    shift 2
+    local start=$SECONDS
+    timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
+    local rc=$?
+    printf '%-18s exit %3d  %4d s  %s\n' "$name" "$rc" $((SECONDS - start)) "$(tail -n 1 "$OUT/$name.txt")"
+}
+
+# the limits add up to under the device tool's 10 minutes a command
+step gpu 10 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+step cuda_tests 150 "$PY" -m pytest -q -m cuda -p no:cacheprovider tests
+step sim 45 "$PY" benchmarks/bench_sim.py --device "$DEVICE" --particles 50000 --steps 400
+step sim_stage 75 "$PY" benchmarks/bench_sim_stage.py --particle-radius 0.00888
+step dataset 90 "$PY" benchmarks/bench_dataset.py --device "$DEVICE"
+step render 90 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 512 1024 --splat ellipsoid --repeat 10
+if "$PY" -c "import taichi" 2>/dev/null; then
+    step taichi 90 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
+else
+    echo "taichi             skipped: no taichi here (stage it with GPU_EXTRA_WHEELS=taichi==1.7.4)"
+fi
+echo "outputs in $OUT"
