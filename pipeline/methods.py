@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
-from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
+from pipeline.evaluate.metrics import REFINED_REACH_PX, bounding_window, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import input_channels, prepare
@@ -130,12 +130,17 @@ def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``depth`` (0 = empty) on ``mask``, each masked pixel without a depth of its own taking its
     nearest depth pixel's (refined silhouettes reach past the splat); 0 off the mask."""
     have = depth > 0
-    if not have.any():
+    if not have.any() or not mask.any():
         return np.zeros_like(depth)
     from scipy.ndimage import distance_transform_edt
 
-    rows, cols = distance_transform_edt(~have, return_distances=False, return_indices=True)
-    return np.where(mask, depth[rows, cols], 0.0).astype(np.float32)
+    # on the box of both grown by a pixel: it holds every depth pixel, so each masked pixel finds
+    # the same nearest one as on the whole image (tested), in a fraction of the time
+    window = bounding_window(have | (mask > 0), 1)
+    rows, cols = distance_transform_edt(~have[window], return_distances=False, return_indices=True)
+    out = np.zeros(depth.shape, np.float32)
+    out[window] = np.where(mask[window], depth[window][rows, cols], 0.0)
+    return out
 
 
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,

@@ -76,3 +76,28 @@ def test_extended_depth_copies_the_nearest_splat_depth():
     np.testing.assert_array_equal(out[:, 5:7], 3.0)
     assert not out[:, 7].any()
     assert not extend_depth(np.zeros((3, 3), np.float32), np.ones((3, 3), bool)).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_windowed_distance_transforms_give_the_whole_image_results(seed):
+    """``near`` and ``extend_depth`` run the distance transform on the fluid's bounding box only; on
+    blobs anywhere in the image (touching its border too), with equidistant candidates on a
+    lattice of depths, they must give what the transform of the whole image gives."""
+    from scipy.ndimage import binary_dilation, distance_transform_edt
+
+    from pipeline.evaluate.metrics import near
+    from pipeline.methods import extend_depth
+
+    rng = np.random.default_rng(seed)
+    h, w = 96, 128
+    fluid = np.zeros((h, w), bool)
+    for _ in range(5):
+        r, c = rng.integers(0, h), rng.integers(0, w)
+        fluid[max(r - 6, 0):r + 6, max(c - 9, 0):c + 9] = True
+    fluid &= rng.random((h, w)) > 0.3
+    depth = np.where(fluid, rng.integers(1, 5, (h, w)).astype(np.float32), 0.0).astype(np.float32)
+    mask = binary_dilation(fluid, iterations=4) & (rng.random((h, w)) > 0.2)
+    for reach in (0.5, 3.0, 4.7):
+        np.testing.assert_array_equal(near(fluid, reach), distance_transform_edt(~fluid) <= reach)
+    rows, cols = distance_transform_edt(~fluid, return_distances=False, return_indices=True)
+    np.testing.assert_array_equal(extend_depth(depth, mask), np.where(mask, depth[rows, cols], 0.0))

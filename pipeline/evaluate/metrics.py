@@ -17,13 +17,28 @@ views only 87-90% of the mesh's pixels are splat pixels, so a refined mask held 
 not reach an IoU of 0.9, and the refiner learns the rest of the silhouette from the target."""
 
 
+def bounding_window(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
+    """Rows and columns of ``mask``'s bounding box grown by ``margin`` pixels, clipped to the image
+    (``mask`` must have a pixel set)."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
+
+
 def near(fluid: np.ndarray, reach_px: float) -> np.ndarray:
-    """Pixels at most ``reach_px`` (Euclidean, pixel centres) from a ``fluid`` pixel."""
+    """Pixels at most ``reach_px`` (Euclidean, pixel centres) from a ``fluid`` pixel.
+
+    The distance transform runs on the fluid's bounding box grown by the reach: every pixel
+    outside it is further away, and inside it the nearest fluid pixel is the same."""
     if reach_px <= 0 or not fluid.any():
         return fluid
     from scipy.ndimage import distance_transform_edt
 
-    return distance_transform_edt(~fluid) <= reach_px
+    window = bounding_window(fluid, int(np.ceil(reach_px)) + 1)
+    out = np.zeros(fluid.shape, bool)
+    out[window] = distance_transform_edt(~fluid[window]) <= reach_px
+    return out
 
 
 def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5, reach_px: float = 0.0) -> np.ndarray:
