@@ -103,9 +103,11 @@ class SequenceRenderer:
         exr, preview, *compare = (self.folder / o for o in self.outputs(frame))
         with timings("exr_write"):
             main.write(exr, p, camera, fps, frame)
-        write_png(preview, tonemap(main.beauty, p.exposure))
+        mapped = {p.method: tonemap(main.beauty, p.exposure)}  # the main method's preview is also its tile
+        write_png(preview, mapped[p.method])
         if compare:
-            tiles = [label(tonemap(shaded[m].beauty, p.exposure), NAMES[m]) for m in COMPARED]
+            tiles = [label(mapped[m] if m in mapped else tonemap(shaded[m].beauty, p.exposure), NAMES[m])
+                     for m in COMPARED]
             write_png(compare[0], np.concatenate(tiles, axis=1))
 
     def render(self, frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
