@@ -44,6 +44,12 @@ def contact_sheet(path: Path, tiles: list[Path]) -> None:
     write_png(path, np.concatenate(rows, axis=0), compress_level=6)  # one image, kept in docs: Pillow's default
 
 
+X264 = ["-preset", "veryfast", "-crf", "24"]
+"""x264 settings of the videos. On the demo's 100 comparison frames (512 x 2560) they encoded in
+1.7 s at 36.6 dB PSNR and 1.04 MB, where imageio-ffmpeg's default (medium, crf 25) took 3.5 s for
+36.7 dB and 0.97 MB."""
+
+
 def write_video(path: Path, frames: list[Path], fps: float) -> None:
     """Encode PNG frames as H.264 (yuv420p) with the ffmpeg bundled in imageio-ffmpeg."""
     import imageio.v3 as iio
@@ -56,7 +62,7 @@ def write_video(path: Path, frames: list[Path], fps: float) -> None:
     pad_h, pad_w = h % 2, w % 2  # yuv420p needs even sides
     with atomic_path(Path(path)) as tmp:
         writer = imageio_ffmpeg.write_frames(str(tmp), (w + pad_w, h + pad_h), fps=fps, codec="libx264",
-                                             pix_fmt_out="yuv420p", output_params=["-f", "mp4"],
+                                             pix_fmt_out="yuv420p", quality=None, output_params=[*X264, "-f", "mp4"],
                                              macro_block_size=1, ffmpeg_log_level="quiet")
         try:
             writer.send(None)
