@@ -4,13 +4,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from pipeline.cache import atomic_path
 
-from pipeline.cache import atomic_path  # noqa: E402
+
+def _pyplot():
+    """matplotlib's pyplot on the Agg backend, imported when a figure is first drawn: importing it
+    took half a second of every process's start, render and demo included, which draw none."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def normal_rgb(normals: np.ndarray) -> np.ndarray:
@@ -29,6 +36,7 @@ def angle_map(pred: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def _save(fig, path: Path) -> None:
+    plt = _pyplot()
     with atomic_path(Path(path)) as tmp:
         fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
@@ -36,6 +44,7 @@ def _save(fig, path: Path) -> None:
 
 def error_sheet(path: Path, frames: list, preds: list[np.ndarray]) -> None:
     """Rows of input | refined | target | angular error of the refined map."""
+    plt = _pyplot()
     if not frames:
         return
     fig, axes = plt.subplots(len(frames), 4, figsize=(12, 3 * len(frames)), squeeze=False)
@@ -57,6 +66,7 @@ def error_sheet(path: Path, frames: list, preds: list[np.ndarray]) -> None:
 
 def loss_curves(path: Path, history: list[dict]) -> None:
     """Training losses and validation angular error per epoch."""
+    plt = _pyplot()
     if not history:
         return
     epochs = [h["epoch"] for h in history]
@@ -78,6 +88,7 @@ def loss_curves(path: Path, history: list[dict]) -> None:
 
 def metaball_curves(path: Path, history: list[dict]) -> None:
     """The metaball pair's losses and validation normal error per epoch."""
+    plt = _pyplot()
     if not history:
         return
     epochs = [h["epoch"] for h in history]
@@ -100,6 +111,7 @@ def metaball_curves(path: Path, history: list[dict]) -> None:
 def evaluation_figures(folder: Path, results: list[dict], table: dict, methods) -> None:
     """methods.png (mean error and share under 10 degrees), frames.png (error over frames per
     sequence) and examples.png (normal maps and error maps of a few held-out frames)."""
+    plt = _pyplot()
     folder = Path(folder)
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.5))
     a.bar(methods, [table[m]["mean_deg"] for m in methods], color="tab:blue")
