@@ -9,6 +9,7 @@ allocated once per image size and reused frame after frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -17,8 +18,10 @@ from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
-from pipeline.surface import Ellipsoids
 from pipeline.timing import Timings
+
+if TYPE_CHECKING:  # annotations only: the surface kernels use the screen kernels' pixel_ray
+    from pipeline.surface import Ellipsoids
 
 _EMPTY = 1.0e30
 FILTERS = ("gaussian", "bilateral", "nrf")

@@ -9,6 +9,7 @@ phi(x) = sum_j V_j det(G_j) P(|G_j (x - c_j)|) splatted on a grid, P the normali
 
 import warp as wp
 
+from pipeline.screen.kernels import pixel_ray
 from pipeline.sph import POLY6_NORM
 
 wp.set_module_options({"enable_backward": False})
@@ -150,13 +151,6 @@ def splat_density(
 
 NO_TRIANGLE = wp.constant(2147483647)
 """A pixel no triangle covers, in ``raster_mesh``'s triangle buffer."""
-
-
-@wp.func
-def pixel_ray(col: int, row: int, width: int, height: int, focal: float) -> wp.vec3:
-    """The view-space ray through a pixel's centre, scaled to z = -1 (its t is the view depth)."""
-    return wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal,
-                   -(float(row) + 0.5 - float(height) * 0.5) / focal, -1.0)
 
 
 @wp.func
@@ -432,8 +426,7 @@ def raymarch_density(
         return
     row = idx // width
     col = idx - row * width
-    ray_view = wp.vec3((float(col) + 0.5 - float(width) * 0.5) / focal,
-                       -(float(row) + 0.5 - float(height) * 0.5) / focal, -1.0)
+    ray_view = pixel_ray(col, row, width, height, focal)
     d = cam_to_world * ray_view  # |d| = |ray_view|: t stays the view depth
     # exit of the box of all supports (slab test)
     t_end = float(1.0e30)
