@@ -143,6 +143,17 @@ def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
+SPHERE_FILTERS = "sphere_filters"
+"""``frame_cache`` key: the sphere-splat filters every method of the frame will ask for, so the
+first one splats once for all of them (``sphere_filters_of``)."""
+
+
+def sphere_filters_of(methods) -> tuple[str, ...]:
+    """The sphere-splat filters of these methods (a sphere-input refiner adds its bilateral when it
+    comes)."""
+    return tuple(dict.fromkeys(m for m in methods if m in ("gaussian", "bilateral", "nrf")))
+
+
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
                   ss: ScreenSpace, launch: Launcher, refiner: Refiner | None = None, threshold: float = 0.5,
                   timings: Timings | None = None, frame_cache: dict | None = None,
@@ -151,7 +162,9 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
 
     ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
     between the methods and views of one frame that need them (ellipsoids, refined on ellipsoids,
-    the mesh), and the sphere splat's thickness of the last view seen (metaballs shade with it)."""
+    the mesh), the sphere splat of the last view seen with the filters of ``SPHERE_FILTERS`` (set by
+    the caller from ``sphere_filters_of``), and that splat's thickness (metaballs and the mesh shade
+    with it)."""
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
@@ -203,8 +216,13 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
             return method_maps(method, ch)
     else:
         screen_filter = "bilateral" if method == "refined" else method
-        with t("inputs"):
-            ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=(screen_filter,))
+        seen, ch = cache.get("sphere_inputs", (None, {}))
+        if seen is not camera or f"{screen_filter}.Z" not in ch:
+            # one splat for every sphere filter this frame's methods ask for (``SPHERE_FILTERS``)
+            wanted = tuple(dict.fromkeys((screen_filter, *cache.get(SPHERE_FILTERS, ()))))
+            with t("inputs"):
+                ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=wanted)
+            cache["sphere_inputs"] = (camera, ch)
         cache["sphere_thickness"] = (camera, ch["thickness"])  # the same splat's for every method of this view
     if method == "refined":
         names = input_channels(refiner.splat)

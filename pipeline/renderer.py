@@ -23,7 +23,15 @@ from pipeline.device import warp_device
 from pipeline.executor import cluster_cpus, run_tasks, shards
 from pipeline.frames import frame_name, spread
 from pipeline.media import contact_sheet, label, write_png, write_video
-from pipeline.methods import NAMES, RenderedFrame, motion_pass, normal_source, shade_frame
+from pipeline.methods import (
+    NAMES,
+    SPHERE_FILTERS,
+    RenderedFrame,
+    motion_pass,
+    normal_source,
+    shade_frame,
+    sphere_filters_of,
+)
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.screen.motion import camera_motion, particle_motion
@@ -75,7 +83,7 @@ class SequenceRenderer:
             else:  # nothing behind the fluid: it refracts the environment alone
                 bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
             bg = self.shader.fill_sky(bg, bg_depth, camera, p)
-        shaded, frame_cache = {}, {}
+        shaded, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
         for method in self.methods:
             t = self.timings if method == p.method else Timings()
             src = normal_source(method, positions, radius, camera, self.config.dataset, self.ss, self.launch,

@@ -262,3 +262,25 @@ def test_ellipsoids_flatten_a_sheet(ss, launch):
         tilt[name] = float(np.degrees(np.arccos(np.clip(n[:, 2], -1, 1))).mean())
     assert tilt["ellipsoid"] < 0.5 * tilt["sphere"], tilt
     np.testing.assert_allclose(ellipsoids["aniso.N"][inner], ss.normals(ellipsoids["aniso.Z"], cam)[inner])
+
+
+def test_the_frame_shares_one_sphere_splat_between_its_filter_methods(ss, launch):
+    """With ``SPHERE_FILTERS`` set for the frame, the first filter method splats once for the
+    others; each method's maps must be those it makes alone, and the later ones must splat nothing."""
+    from pipeline.methods import SPHERE_FILTERS, normal_source, sphere_filters_of
+    from pipeline.timing import Timings
+
+    rng = np.random.default_rng(5)
+    x = (rng.random((1500, 3)) * [0.3, 0.2, 0.3]).astype(np.float32)
+    cam = Camera(look_at((0.15, 0.35, 0.7), (0.15, 0.05, 0.15)), 40.0, 96, 96)
+    p = DatasetConfig()
+    methods = ["bilateral", "nrf", "gaussian"]
+    shared = {SPHERE_FILTERS: sphere_filters_of(["refined", *methods, "mesh"])}
+    assert shared[SPHERE_FILTERS] == tuple(methods)
+    for k, method in enumerate(methods):
+        t = Timings()
+        together = normal_source(method, x, 0.01, cam, p, ss, launch, timings=t, frame_cache=shared)
+        alone = normal_source(method, x, 0.01, cam, p, ss, launch, frame_cache={})
+        for key in ("normals", "depth", "mask", "thickness"):
+            np.testing.assert_array_equal(together[key], alone[key], err_msg=f"{method} {key}")
+        assert ("splat" in t.as_dict()) == (k == 0), f"{method}: {t.as_dict()}"
