@@ -163,8 +163,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
     between the methods and views of one frame that need them (ellipsoids, refined on ellipsoids,
     the mesh), the sphere splat of the last view seen with the filters of ``SPHERE_FILTERS`` (set by
-    the caller from ``sphere_filters_of``), and that splat's thickness (metaballs and the mesh shade
-    with it)."""
+    the caller from ``sphere_filters_of``), whose thickness the metaballs and the mesh shade with."""
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
@@ -172,15 +171,23 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         raise ValueError("the refined method needs a generator")
     cache = frame_cache if frame_cache is not None else {}
 
-    def sphere_thickness() -> np.ndarray:
-        """The sphere splat's thickness of this view (the shader's absorption for the methods that
-        make their own normals and depth): another method's of the same view, or a splat alone."""
-        seen, thickness = cache.get("sphere_thickness", (None, None))
-        if seen is not camera:
+    def sphere_inputs(screen_filter: str | None = None) -> dict[str, np.ndarray]:
+        """The sphere splat's channels of this view, shared by the frame's methods: splatted once
+        with every filter of ``SPHERE_FILTERS`` (and ``screen_filter``), again only for a filter
+        it lacks or another view."""
+        seen, ch = cache.get("sphere_inputs", (None, {}))
+        if seen is not camera or (screen_filter is not None and f"{screen_filter}.Z" not in ch):
+            wanted = (screen_filter,) if screen_filter is not None else ()
+            wanted = tuple(dict.fromkeys((*wanted, *cache.get(SPHERE_FILTERS, ()))))
             with t("inputs"):
-                thickness = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=())["thickness"]
-            cache["sphere_thickness"] = (camera, thickness)
-        return thickness
+                ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=wanted)
+            cache["sphere_inputs"] = (camera, ch)
+        return ch
+
+    def sphere_thickness() -> np.ndarray:
+        """The sphere splat's thickness: the shader's absorption for the methods that make their
+        own normals and depth (metaballs, the mesh)."""
+        return sphere_inputs()["thickness"]
 
     if method == "metaball":
         if metaball is None:
@@ -215,15 +222,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         if method != "refined":
             return method_maps(method, ch)
     else:
-        screen_filter = "bilateral" if method == "refined" else method
-        seen, ch = cache.get("sphere_inputs", (None, {}))
-        if seen is not camera or f"{screen_filter}.Z" not in ch:
-            # one splat for every sphere filter this frame's methods ask for (``SPHERE_FILTERS``)
-            wanted = tuple(dict.fromkeys((screen_filter, *cache.get(SPHERE_FILTERS, ()))))
-            with t("inputs"):
-                ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=wanted)
-            cache["sphere_inputs"] = (camera, ch)
-        cache["sphere_thickness"] = (camera, ch["thickness"])  # the same splat's for every method of this view
+        ch = sphere_inputs("bilateral" if method == "refined" else method)
     if method == "refined":
         names = input_channels(refiner.splat)
         with t("refiner"):

@@ -111,10 +111,10 @@ class SequenceRenderer:
         exr, preview, *compare = (self.folder / o for o in self.outputs(frame))
         with timings("exr_write"):
             main.write(exr, p, camera, fps, frame)
-        mapped = {p.method: tonemap(main.beauty, p.exposure)}  # the main method's preview is also its tile
-        write_png(preview, mapped[p.method])
+        main_tile = tonemap(main.beauty, p.exposure)  # the preview, and the main method's comparison tile
+        write_png(preview, main_tile)
         if compare:
-            tiles = [label(mapped[m] if m in mapped else tonemap(shaded[m].beauty, p.exposure), NAMES[m])
+            tiles = [label(main_tile if m == p.method else tonemap(shaded[m].beauty, p.exposure), NAMES[m])
                      for m in COMPARED]
             write_png(compare[0], np.concatenate(tiles, axis=1))
 

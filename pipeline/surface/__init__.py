@@ -292,17 +292,21 @@ def render_maps(mesh: SurfaceMesh, camera: Camera, launch: Launcher,
         depths.append(wp.full(w * h, 1.0e30, dtype=float, device=device))
         return [vertices, faces, w, h, camera.focal_px, RASTER_NEAR, none_f, depths[chunk], none_i]
 
+    def merged(buffers: list[wp.array], dtype) -> wp.array:
+        """The chunks' private buffers merged by minimum (one chunk on CUDA: its buffer)."""
+        if len(buffers) == 1:
+            return buffers[0]
+        return wp.array(np.minimum.reduce([b.numpy() for b in buffers]), dtype=dtype, device=device)
+
     launch.map(K.raster_mesh, len(mesh.faces), depth_pass)
-    nearest = depths[0] if len(depths) == 1 else wp.array(np.minimum.reduce([d.numpy() for d in depths]),
-                                                          dtype=float, device=device)
+    nearest = merged(depths, float)
 
     def triangle_pass(chunk: int) -> list:
         triangles.append(wp.full(w * h, int(K.NO_TRIANGLE), dtype=int, device=device))
         return [vertices, faces, w, h, camera.focal_px, RASTER_NEAR, nearest, none_f, triangles[chunk]]
 
     launch.map(K.raster_mesh, len(mesh.faces), triangle_pass)
-    winner = triangles[0] if len(triangles) == 1 else wp.array(np.minimum.reduce([t.numpy() for t in triangles]),
-                                                               dtype=int, device=device)
+    winner = merged(triangles, int)
     out_n = wp.zeros(w * h, dtype=wp.vec3, device=device)
     out_d = wp.zeros(w * h, dtype=float, device=device)
     launch(K.raster_mesh_resolve, w * h, [vertices, normals, faces, winner, w, h, camera.focal_px, out_n, out_d])
