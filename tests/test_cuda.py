@@ -59,6 +59,25 @@ def test_pbf_frame_on_the_gpu_matches_the_cpu_to_rounding():
     np.testing.assert_allclose(vg, vc, atol=1e-2)
 
 
+def test_pipelined_frames_on_the_gpu_arrive_in_order(tmp_path):
+    """The simulate loop queues frame k + 1 before it reads frame k back through pinned memory: each
+    saved frame is its own frame (a frame apart differs by centimetres, the CPU agrees to rounding)."""
+    from pipeline.frames import frame_name, load_frame
+    from pipeline.sim.pbf import PBFSolver
+    from pipeline.sim.runner import simulate_sequence
+
+    scene = SceneConfig(name="t", cameras=from_dict(Cameras, CAMERAS), domain_lo=(0, 0, 0), domain_hi=(0.4, 0.6, 0.3),
+                        fluid=(FluidShape(shape="box", lo=(0, 0.2, 0), hi=(0.12, 0.5, 0.3)),))
+    params = SimulateConfig(particle_radius=0.0125, frames=3)
+    simulate_sequence(tmp_path, scene, params, "cuda:0", seed=0)
+    solver = PBFSolver(scene, params, "cpu", seed=0)
+    for f in range(1, 4):
+        solver.advance_frame(f)
+        x, v = load_frame(tmp_path / frame_name(f))
+        np.testing.assert_allclose(x, solver.state()[0], atol=1e-3, err_msg=f"frame {f}")
+    solver.close()
+
+
 def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch):
     from tests.conftest import write_config
 

@@ -345,3 +345,88 @@ def test_the_native_finish_loops_give_the_general_functions_bits():
     assert np.abs(states[0][1]).max() > 0.1, "the column must be moving"
     for a, b in zip(states[0], states[1], strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_frame_diagnostics_reduce_like_numpy_and_skip_non_finite_particles():
+    import warp as wp
+
+    from pipeline.sim import kernels as K
+
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.0, 1.0, (500, 3)).astype(np.float32)
+    v = rng.normal(size=(500, 3)).astype(np.float32)
+    rho = rng.uniform(900.0, 1100.0, 500).astype(np.float32)
+    counts = rng.integers(0, 40, 500).astype(np.int32)
+    x[7] = (1.5, 0.5, 0.5)  # outside on +x
+    x[8] = (0.5, -0.2, 0.5)  # outside on -y
+    v[9, 1] = np.nan  # not finite: counted, and its huge density kept out of the maximum
+    rho[9] = 1e9
+    x[10, 2] = np.inf
+    out = wp.zeros(K.DIAG_SIZE, dtype=float, device="cpu")
+    wp.launch(K.frame_diagnostics, 500, [wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), wp.array(rho),
+                                         wp.array(counts, dtype=int), wp.vec3(0, 0, 0), wp.vec3(1, 1, 1), out],
+              device="cpu")
+    d = out.numpy()
+    finite = np.ones(500, bool)
+    finite[[9, 10]] = False
+    assert d[K.DIAG_NONFINITE] == 2
+    assert d[K.DIAG_OUTSIDE] == 2
+    assert d[K.DIAG_MAX_DENSITY] == rho[finite].max()
+    np.testing.assert_allclose(d[K.DIAG_MAX_SPEED2], (v[finite] ** 2).sum(1).max(), rtol=1e-6)
+    assert d[K.DIAG_NEIGHBOURS] == counts.sum()
+
+
+def test_finished_frame_reports_what_the_particles_hold():
+    scene = _scene(fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.12, 0.25, 0.3)),))
+    solver = PBFSolver(scene, SimulateConfig(particle_radius=0.0125, frames=4), "cpu", seed=2)
+    for f in range(1, 4):
+        stats, x, v = solver.finish_frame(solver.begin_frame(f))
+        n = solver.n
+        x_ref, v_ref = solver.state()
+        np.testing.assert_array_equal(x, x_ref)
+        np.testing.assert_array_equal(v, v_ref)
+        assert stats.particles == n == len(x)
+        assert stats.max_density_ratio == pytest.approx(solver.particle_rho.numpy()[:n].max() / 1000.0, rel=1e-6)
+        assert stats.mean_neighbours == pytest.approx(2 * solver.neighbour_count.numpy()[:n].mean(), rel=1e-6)
+    solver.close()
+
+
+def test_the_stage_loop_writes_the_frames_of_a_plain_loop(tmp_path):
+    """The pipelined stage loop (frame k + 1 queued before frame k is checked and written) saves
+    exactly the frames of advance_frame + state, with an emitter changing the count mid-run."""
+    from pipeline.frames import frame_name, load_frame
+    from pipeline.sim.runner import simulate_sequence
+
+    scene = _scene(fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.12, 0.2, 0.3)),),
+                   emitters=(Emitter(position=(0.3, 0.4, 0.15), direction=(0, -1, 0), radius=0.03,
+                                     speed=1.0, start=0.05, end=0.15),))
+    params = SimulateConfig(particle_radius=0.0125, frames=6)
+    extra = simulate_sequence(tmp_path, scene, params, "cpu", seed=4)
+    solver = PBFSolver(scene, params, "cpu", seed=4)
+    counts = set()
+    for f in range(1, 7):
+        solver.advance_frame(f)
+        x_ref, v_ref = solver.state()
+        x, v = load_frame(tmp_path / frame_name(f))
+        np.testing.assert_array_equal(x, x_ref)
+        np.testing.assert_array_equal(v, v_ref)
+        counts.add(len(x))
+    solver.close()
+    assert len(counts) > 1 and extra["particles"] == max(counts)
+
+
+def test_the_stage_keeps_the_frames_before_a_blow_up_and_not_the_blown_one(tmp_path):
+    from pipeline.frames import frame_name, load_frame
+    from pipeline.sim.runner import SimulationFailed, simulate_sequence
+
+    # a body thrown at 3 m/s, falling and splashing, passes a 3.5 m/s limit at some frame k > 1
+    scene = _scene(fluid=(FluidShape(shape="box", lo=(0, 0.3, 0), hi=(0.1, 0.5, 0.3), velocity=(3.0, 0, 0)),))
+    params = SimulateConfig(particle_radius=0.0125, frames=12, max_speed=3.5)
+    with pytest.raises(SimulationFailed, match=r"blow-up at frame (\d+): a particle moves") as err:
+        simulate_sequence(tmp_path, scene, params, "cpu", seed=0)
+    blown = int(err.value.args[0].split("frame ")[1].split(":")[0])
+    assert blown > 1
+    for f in range(1, blown):
+        assert np.isfinite(load_frame(tmp_path / frame_name(f))[0]).all()
+    assert not (tmp_path / frame_name(blown)).exists()
+    assert not (tmp_path / frame_name(blown + 1)).exists()

@@ -1143,3 +1143,42 @@ def scatter_by_id(
     """dst[id[k]] = src[k]: return to stable particle order for output."""
     k = wp.tid() + offset
     dst[particle_id[k]] = src[k]
+
+
+# -- a frame's health ------------------------------------------------------------------------------
+# Slots of ``frame_diagnostics``' output: the frame checks read these five numbers from the device
+# instead of copying every particle's state to the host before the next frame may start.
+DIAG_MAX_DENSITY = wp.constant(0)
+DIAG_MAX_SPEED2 = wp.constant(1)
+DIAG_NONFINITE = wp.constant(2)
+DIAG_OUTSIDE = wp.constant(3)
+DIAG_NEIGHBOURS = wp.constant(4)
+DIAG_SIZE = 5
+
+
+@wp.kernel
+def frame_diagnostics(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    neighbour_count: wp.array(dtype=int),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    out: wp.array(dtype=float),
+):
+    """Reduce a frame into ``out`` (zeroed first; one launch, not chunked: atomics are plain adds on the
+    CPU): the largest density and squared speed of the finite particles, how many particles are not
+    finite, how many are outside [lo, hi], and the half neighbour lists' total length. Maxima and
+    integer-valued sums (exact in float32 below 2^24) come out the same in any order."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    r = rho[i]
+    if wp.isfinite(xi) and wp.isfinite(vi) and wp.isfinite(r):
+        wp.atomic_max(out, DIAG_MAX_DENSITY, r)
+        wp.atomic_max(out, DIAG_MAX_SPEED2, wp.dot(vi, vi))
+        if xi[0] < lo[0] or xi[1] < lo[1] or xi[2] < lo[2] or xi[0] > hi[0] or xi[1] > hi[1] or xi[2] > hi[2]:
+            wp.atomic_add(out, DIAG_OUTSIDE, 1.0)
+    else:
+        wp.atomic_add(out, DIAG_NONFINITE, 1.0)
+    wp.atomic_add(out, DIAG_NEIGHBOURS, float(neighbour_count[i]))

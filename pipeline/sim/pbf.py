@@ -46,6 +46,19 @@ class FrameStats:
     mean_neighbours: float
 
 
+@dataclass(frozen=True)
+class PendingFrame:
+    """A frame whose state and diagnostics are on their way to the host (``PBFSolver.begin_frame``):
+    ready once the device has passed ``event`` (None on the CPU, where they already are)."""
+
+    frame: int
+    particles: int
+    x: wp.array
+    v: wp.array
+    diagnostics: wp.array
+    event: wp.Event | None
+
+
 class PBFSolver:
     """Holds the particle state of one scene on one device and advances it frame by frame."""
 
@@ -81,7 +94,6 @@ class PBFSolver:
         self._allocate()
         self._upload_obstacles()
         self._append(x0, v0)
-        self.max_density_ratio = 1.0
 
     # -- memory -----------------------------------------------------------------------------
     def _allocate(self) -> None:
@@ -116,6 +128,14 @@ class PBFSolver:
         self.acc3a, self.acc3b = vec(), vec()
         self.omega_length = wp.zeros(cap, dtype=float, device=dev)
         self.particle_vol = wp.zeros(cap, dtype=float, device=dev)
+        # a frame's output: the state in id order on the device, and two host copies (pinned on CUDA,
+        # so the copies run while the host goes on) that alternate from frame to frame
+        self.out_x, self.out_v = vec(), vec()
+        self.diagnostics = wp.zeros(K.DIAG_SIZE, dtype=float, device=dev)
+        pinned = wp.get_device(dev).is_cuda
+        self._host = [(wp.empty(cap, dtype=wp.vec3, device="cpu", pinned=pinned),
+                       wp.empty(cap, dtype=wp.vec3, device="cpu", pinned=pinned),
+                       wp.empty(K.DIAG_SIZE, dtype=float, device="cpu", pinned=pinned)) for _ in range(2)]
         self.wall_table = wp.array(wall_density_table(2.0 * self.radius, self.h), dtype=wp.vec2, device=dev)
         # (start, end) of the pair-pass blocks (``Launcher.scatter_blocks``: at most 2 x BLOCKS_PER_THREAD a thread)
         self.block_bounds = wp.zeros(2 * BLOCKS_PER_THREAD * self.launch.threads, dtype=wp.vec2i, device=dev)
@@ -301,27 +321,54 @@ class PBFSolver:
 
     def advance_frame(self, frame: int) -> FrameStats:
         """Run one frame's substeps and check for a blow-up (NaN, escape, runaway density)."""
+        stats, _, _ = self.finish_frame(self.begin_frame(frame))
+        return stats
+
+    def begin_frame(self, frame: int) -> PendingFrame:
+        """Queue one frame's substeps, then its state in id order and its diagnostics on their way to
+        the host, and return without waiting for the device. Finish a frame (``finish_frame``) before
+        beginning the one after next: two frames' host copies alternate."""
         for _ in range(self.params.substeps):
             self.step()
-        n = self.n
-        rho = self.particle_rho.numpy()[:n]
-        x = self.particle_x.numpy()[:n]
-        v = self.particle_v.numpy()[:n]
-        ratio = float(rho.max() / self.params.rest_density) if n else 0.0
-        if not (np.isfinite(x).all() and np.isfinite(v).all() and np.isfinite(rho).all()):
+        n, dev = self.n, self.device
+        host_x, host_v, host_diag = self._host[frame % 2]
+        self.diagnostics.zero_()
+        if n:
+            self.launch(K.scatter_by_id, n, [self.particle_id, self.particle_x, self.out_x])
+            self.launch(K.scatter_by_id, n, [self.particle_id, self.particle_v, self.out_v])
+            margin = wp.vec3(1e-3, 1e-3, 1e-3)
+            wp.launch(K.frame_diagnostics, n, [self.particle_x, self.particle_v, self.particle_rho,
+                                               self.neighbour_count, self.lo - margin, self.hi + margin,
+                                               self.diagnostics], device=dev)
+            wp.copy(host_x, self.out_x, count=n)
+            wp.copy(host_v, self.out_v, count=n)
+        wp.copy(host_diag, self.diagnostics)
+        device = wp.get_device(dev)
+        event = device.stream.record_event() if device.is_cuda else None
+        return PendingFrame(frame, n, host_x, host_v, host_diag, event)
+
+    def finish_frame(self, pending: PendingFrame) -> tuple[FrameStats, np.ndarray, np.ndarray]:
+        """Wait for a begun frame, check it for a blow-up (non-finite values, a runaway speed, an escape
+        from the container, a runaway density) and return its stats, positions and velocities (id
+        order, copies the caller may keep)."""
+        if pending.event is not None:
+            wp.synchronize_event(pending.event)
+        n, frame = pending.particles, pending.frame
+        d = pending.diagnostics.numpy()
+        if d[K.DIAG_NONFINITE] > 0:
             raise SimulationError(f"blow-up at frame {frame}: non-finite positions, velocities or densities")
-        speed = float(np.sqrt((v * v).sum(1)).max()) if n else 0.0
+        speed = math.sqrt(float(d[K.DIAG_MAX_SPEED2]))
         if speed > self.params.max_speed:
             raise SimulationError(f"blow-up at frame {frame}: a particle moves at {speed:.0f} m/s")
-        lo = np.asarray(self.scene.domain_lo) - 1e-3
-        hi = np.asarray(self.scene.domain_hi) + 1e-3
-        if ((x < lo) | (x > hi)).any():
+        if d[K.DIAG_OUTSIDE] > 0:
             raise SimulationError(f"blow-up at frame {frame}: particles left the container")
+        ratio = float(d[K.DIAG_MAX_DENSITY]) / self.params.rest_density if n else 0.0
         if ratio > 3.0:
             raise SimulationError(f"blow-up at frame {frame}: density {ratio:.1f}x rest")
         # the half list stores each pair once: a particle has twice as many neighbours on average
-        mean_nb = 2.0 * float(self.neighbour_count.numpy()[:n].mean()) if n else 0.0
-        return FrameStats(n, ratio, mean_nb)
+        mean_nb = 2.0 * float(d[K.DIAG_NEIGHBOURS]) / n if n else 0.0
+        x, v = pending.x.numpy()[:n].copy(), pending.v.numpy()[:n].copy()
+        return FrameStats(n, ratio, mean_nb), x, v
 
     def close(self) -> None:
         """Release the thread pool."""
