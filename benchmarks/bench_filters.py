@@ -74,7 +74,7 @@ def main() -> None:
                         ss.bilateral(ch["Z"], cam, r, p) if m == "bilateral" else ss.narrow_range(ch["Z"], cam, r, p)
                         times[(size, m, mode)].append(time.perf_counter() - start)
                         errors[(size, m, mode)].append(angular_errors(stack(ch, f"{m}.N."), target, fluid & t_mask))
-                    n, mask = refine(refiner, ch, run.config.render.normal_threshold, cam.focal_px, r)
+                    n, mask, _ = refine(refiner, ch, run.config.render.normal_threshold, cam.focal_px, r)
                     errors[(size, "refined", mode)].append(angular_errors(n, target, mask & t_mask))
                     if mode == "fast" and fluid.any():
                         radii[size].append(float(np.median(cam.focal_px * r / ch["Z"][fluid])))

@@ -87,7 +87,7 @@ def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpac
     for _ in range(repeat):
         frame()
     row = {k: t.mean_ms(k) for k in ("anisotropy", "splat", "bilateral", "normals", "refiner", "shading", "exr",
-                                     "inputs")}
+                                     "inputs", "prepare", "network", "post")}
     row["inputs"] += row["anisotropy"]
     ellipsoids = particle_ellipsoids(x, r, p, launch) if refiner.splat == "ellipsoid" else None
     channels = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",), ellipsoids=ellipsoids,
@@ -166,8 +166,8 @@ def main() -> None:
     where = "CUDA" if device == "cuda" else f"CPU, {torch.get_num_threads()} torch threads"
     print(f"device: {where}; filters: {p.filter_mode}; refiner input: {args.splat} splat; ms per frame (medians)")
     head = (f"{'size':>5s} {'r_px':>5s} {'aniso':>6s} {'splat':>6s} {'bilat':>6s} {'normal':>6s} {'inputs':>7s} "
-            f"{'shade':>6s} {'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'nocrop':>7s} "
-            f"{'plain':>7s} {'speed-up':>8s}")
+            f"{'shade':>6s} {'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'prep':>6s} "
+            f"{'net':>6s} {'post':>6s} {'nocrop':>7s} {'plain':>7s} {'speed-up':>8s}")
     with tempfile.TemporaryDirectory() as tmp:
         for name, (x, r) in frames.items():
             print(f"\n{name}\n{head}")
@@ -179,10 +179,13 @@ def main() -> None:
                 print(f"{size:5d} {row['rp_px']:5.1f} {row['anisotropy']:6.1f} {row['splat']:6.1f} "
                       f"{row['bilateral']:6.1f} {row['normals']:6.1f} {row['inputs']:7.1f} {row['shading']:6.1f} "
                       f"{row['exr']:6.1f} {row['inputs'] + row['shading'] + row['exr']:9.1f} "
-                      f"{row['pipelined_frame']:9.1f} {row['refiner']:8.1f} {row['fast_refiner_nocrop']:7.1f} "
+                      f"{row['pipelined_frame']:9.1f} {row['refiner']:8.1f} {row['prepare']:6.1f} "
+                      f"{row['network']:6.1f} {row['post']:6.1f} {row['fast_refiner_nocrop']:7.1f} "
                       f"{row['plain_refiner']:7.1f} {row['plain_refiner'] / row['refiner']:7.2f}x", flush=True)
     print("\ninputs = anisotropy (ellipsoid input only) + splat + filter + normals + copies; refiner = folded, "
-          "channels-last, cropped to the fluid (nocrop: whole image); plain = the training-time module's forward "
+          "channels-last, cropped to the fluid (nocrop: whole image), of which prep (the input at the working "
+          "scale) and post (back to the view's size, mask, depth) run on the host whatever the device and net is "
+          "the generator; plain = the training-time module's forward "
           "pass; pipelined = a frame of the render loop, inputs + refiner + shading with the EXR written on a "
           "background thread")
     if args.json:

@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
-from pipeline.evaluate.metrics import REFINED_REACH_PX, bounding_window, refined_mask
+from pipeline.evaluate.metrics import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import input_channels, prepare
@@ -27,6 +27,7 @@ from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
+from pipeline.vectors import length
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
@@ -105,25 +106,40 @@ class RenderedFrame:
 
 
 def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5, focal_px: float | None = None,
-           radius: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Refined unit normals and their fluid mask from a view's screen-space channels.
+           radius: float | None = None,
+           timings: Timings | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Refined unit normals, their fluid mask and depth from a view's screen-space channels.
 
     The view goes to the refiner's working scale and its output back to the view's size
     (``pipeline.model.scale``); scale-free inputs need the image's focal length in pixels and the
     particle radius. Pixels whose predicted normal is shorter than ``threshold`` are dropped as
     noise (Choi et al., section 3.3), and so are pixels further from the splat's fluid than
     ``REFINED_REACH_PX`` working pixels (the reference surface is wider than the splat; its depth
-    there is the nearest splat pixel's: ``extend_depth``).
+    there is the nearest splat pixel's: ``extend_depth``, here from the same distance transform as
+    the reach when the filtered depth covers the splat, as the screen-space filters make it).
+    ``timings`` gets 'prepare', 'network' and 'post': the host's share and the generator's.
     """
+    t = timings or Timings()
     names = input_channels(refiner.splat)
     fluid = channels[names.fluid] > 0
-    view = prepare(channels, refiner.spec, focal_px, radius)
-    n = refiner(view.inputs, view.fluid)
-    n = resize_normals(n, fluid.shape)
-    reach = REFINED_REACH_PX / view.scale if refiner.spec.features == "radius" else 0.0
-    mask = refined_mask(n, fluid, threshold, reach)
-    length = np.linalg.norm(n, axis=-1)
-    return np.where(mask[..., None], n / np.maximum(length, 1e-6)[..., None], 0.0).astype(np.float32), mask
+    blurred = channels[names.blurred]
+    with t("prepare"):
+        view = prepare(channels, refiner.spec, focal_px, radius)
+    with t("network"):
+        n = refiner(view.inputs, view.fluid)
+    with t("post"):
+        n = resize_normals(n, fluid.shape)
+        reach = REFINED_REACH_PX / view.scale if refiner.spec.features == "radius" else 0.0
+        lengths = length(n)
+        nearest = NearestFluid.of(fluid, reach) if reach > 0 and fluid.any() else None
+        mask = refined_mask(n, fluid, threshold, reach, lengths, nearest)
+        out = np.zeros(n.shape, np.float32)
+        out[mask] = n[mask] / np.maximum(lengths[mask], 1e-6)[:, None]
+        if nearest is not None and np.array_equal(blurred > 0, fluid):
+            depth = nearest.spread(blurred, mask)
+        else:
+            depth = extend_depth(blurred, mask)
+    return out, mask, depth
 
 
 def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -224,11 +240,10 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     else:
         ch = sphere_inputs("bilateral" if method == "refined" else method)
     if method == "refined":
-        names = input_channels(refiner.splat)
         with t("refiner"):
-            n, mask = refine(refiner, ch, threshold, camera.focal_px, radius)
-        return {"normals": n, "depth": extend_depth(ch[names.blurred], mask), "mask": mask.astype(np.float32),
-                "thickness": ch[names.thickness]}
+            n, mask, depth = refine(refiner, ch, threshold, camera.focal_px, radius, t)
+        return {"normals": n, "depth": depth, "mask": mask.astype(np.float32),
+                "thickness": ch[input_channels(refiner.splat).thickness]}
     return method_maps(method, ch)
 
 

@@ -64,7 +64,7 @@ def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", 
         if refiner.spec.features == "radius" and (focal_px is None or r is None):
             raise ValueError(f"{path}: the header gives no {'particleRadius' if r is None else 'camera'}; pass "
                              f"{'--radius' if r is None else '--fov'}")
-        normals, mask = refine(refiner, channels, threshold, focal_px, r)
+        normals, mask, _ = refine(refiner, channels, threshold, focal_px, r)
         channels = {f"N.{a}": normals[..., k] for k, a in enumerate("XYZ")}
         write_exr(target, {**channels, "mask": mask.astype("float32")})
         done += 1

@@ -131,7 +131,7 @@ def test_refine_your_own_exrs(tmp_path, ss, launch, capsys):
     for f in (1, 2, 10):
         got = read_exr(tmp_path / "out" / f"view_{f}.exr")
         focal_px = Camera(np.eye(4), 40.0, 64, 64).focal_px
-        n, mask = refine(refiner, read_exr(tmp_path / f"view_{f}.exr"), 0.5, focal_px, r)
+        n, mask, _ = refine(refiner, read_exr(tmp_path / f"view_{f}.exr"), 0.5, focal_px, r)
         np.testing.assert_allclose(stack(got, "N."), n, atol=1e-6)
         assert np.array_equal(got["mask"] > 0, mask) and mask.sum() > 40
         np.testing.assert_allclose(np.linalg.norm(n[mask], axis=-1), 1.0, atol=1e-5)

@@ -68,3 +68,48 @@ def test_refiner_without_fluid_returns_zeros():
     g = _trained_looking_generator()
     x = np.zeros((5, 64, 64), np.float32)
     assert not Refiner(g)(x, np.zeros((64, 64), bool)).any()
+
+
+def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
+    """``refine`` computes the mask's reach and the extended depth from one distance transform and
+    normalises only masked pixels; it must give what the separate rules give (``refined_mask``,
+    ``extend_depth``, the normalised network output), at a size the working scale changes."""
+    from pipeline.camera import Camera, look_at
+    from pipeline.config import DatasetConfig
+    from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
+    from pipeline.methods import extend_depth, refine
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.data import input_channels, prepare
+    from pipeline.model.inference import load_refiner
+    from pipeline.model.scale import resize_normals
+    from pipeline.screen import ScreenSpace
+    from pipeline.views import screen_space_inputs
+
+    x = (np.random.default_rng(2).normal(size=(2500, 3)) * (0.06, 0.03, 0.05) + (0, 0, -0.5)).astype(np.float32)
+    cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 160, 160)
+    ss = ScreenSpace("cpu")
+    ch = screen_space_inputs(x, 0.004, cam, DatasetConfig(), ss, filters=("bilateral",))
+    ss.close()
+    refiner = load_refiner(SHIPPED_WEIGHTS)
+    if refiner.splat != "sphere":
+        from pipeline.parallel import Launcher
+        from pipeline.surface import particle_ellipsoids
+
+        launch, ss = Launcher("cpu"), ScreenSpace("cpu")
+        ch.update(screen_space_inputs(x, 0.004, cam, DatasetConfig(), ss, filters=None,
+                                      ellipsoids=particle_ellipsoids(x, 0.004, DatasetConfig(), launch),
+                                      aniso_filters=("bilateral",)))
+        launch.close()
+        ss.close()
+    names = input_channels(refiner.splat)
+    normals, mask, depth = refine(refiner, ch, 0.5, cam.focal_px, 0.004)
+    view = prepare(ch, refiner.spec, cam.focal_px, 0.004)
+    assert view.scale != 1.0, "the view must be resampled for the test to cover the way back"
+    raw = resize_normals(refiner(view.inputs, view.fluid), mask.shape)
+    fluid = ch[names.fluid] > 0
+    want = refined_mask(raw, fluid, 0.5, REFINED_REACH_PX / view.scale)
+    np.testing.assert_array_equal(mask, want)
+    assert (mask & ~fluid).any(), "some refined pixels must reach past the splat"
+    np.testing.assert_array_equal(normals[~mask], 0.0)
+    np.testing.assert_array_equal(normals[mask], raw[mask] / np.linalg.norm(raw[mask], axis=-1, keepdims=True))
+    np.testing.assert_array_equal(depth, extend_depth(ch[names.blurred], mask))

@@ -100,4 +100,28 @@ def test_windowed_distance_transforms_give_the_whole_image_results(seed):
     for reach in (0.5, 3.0, 4.7):
         np.testing.assert_array_equal(near(fluid, reach), distance_transform_edt(~fluid) <= reach)
     rows, cols = distance_transform_edt(~fluid, return_distances=False, return_indices=True)
-    np.testing.assert_array_equal(extend_depth(depth, mask), np.where(mask, depth[rows, cols], 0.0))
+    whole = np.where(mask, depth[rows, cols], 0.0)
+    np.testing.assert_array_equal(extend_depth(depth, mask), whole)
+    # the renderer's shared transform (refine): the mask within the reach, the same depths
+    from pipeline.evaluate.metrics import NearestFluid
+
+    nearest = NearestFluid.of(fluid, 4.0)
+    within = mask & nearest.near(4.0)
+    assert within.sum() > 0.5 * mask.sum()
+    np.testing.assert_array_equal(nearest.near(4.0), near(fluid, 4.0))
+    np.testing.assert_array_equal(nearest.spread(depth, within), np.where(within, whole, 0.0))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_vector_length_is_numpys_norm_bit_for_bit(dtype):
+    """``pipeline.vectors.length`` replaces ``np.linalg.norm`` on images for speed: it must add the
+    same squares in the same order (another order differs in the last bit on some of these)."""
+    from pipeline.vectors import length
+
+    rng = np.random.default_rng(5)
+    v = (rng.normal(size=(64, 48, 3)) * rng.uniform(1e-3, 1e3, size=(64, 48, 3))).astype(dtype)
+    np.testing.assert_array_equal(length(v), np.linalg.norm(v, axis=-1))
+    chw = np.ascontiguousarray(np.moveaxis(v, -1, 0))
+    np.testing.assert_array_equal(length(chw, axis=0), np.linalg.norm(chw, axis=0))
+    x, y, z = np.moveaxis(v, -1, 0)
+    assert not np.array_equal(np.sqrt((z * z + y * y) + x * x), np.linalg.norm(v, axis=-1))

@@ -57,7 +57,7 @@ def test_shipped_weights_beat_the_bilateral_input_on_an_unseen_scene():
     ss.close()
     launch.close()
     refiner = load_refiner(SHIPPED)
-    refined, mask = refine(refiner, ch, 0.5, cam.focal_px, r)
+    refined, mask, _ = refine(refiner, ch, 0.5, cam.focal_px, r)
     target = np.stack([ch[f"target.N.{a}"] for a in "XYZ"], -1)
     given = np.stack([ch[name] for name in input_channels(refiner.splat).normal], -1)
     t_mask = normal_mask(target)

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from pipeline.vectors import length
 
-def normal_mask(normals: np.ndarray, threshold: float = 0.5) -> np.ndarray:
-    """Fluid pixels of a normal map: vectors at least ``threshold`` long."""
-    return np.linalg.norm(normals, axis=-1) >= threshold
+
+def normal_mask(normals: np.ndarray, threshold: float = 0.5, lengths: np.ndarray | None = None) -> np.ndarray:
+    """Fluid pixels of a normal map: vectors at least ``threshold`` long (``lengths``: theirs, when
+    the caller has them already)."""
+    return (length(normals) if lengths is None else lengths) >= threshold
 
 
 REFINED_REACH_PX = 3
@@ -26,35 +31,68 @@ def bounding_window(mask: np.ndarray, margin: int) -> tuple[slice, slice]:
             slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
 
 
-def near(fluid: np.ndarray, reach_px: float) -> np.ndarray:
-    """Pixels at most ``reach_px`` (Euclidean, pixel centres) from a ``fluid`` pixel.
+@dataclass(frozen=True)
+class NearestFluid:
+    """Every pixel's distance to its nearest ``fluid`` pixel and where that pixel is, from one
+    distance transform on the fluid's bounding box grown past ``reach_px``: every pixel outside the
+    box is further away, and inside it the nearest fluid pixel is the one of the whole image
+    (tested). ``near`` and the renderer's depth spread (``spread``) share it."""
 
-    The distance transform runs on the fluid's bounding box grown by the reach: every pixel
-    outside it is further away, and inside it the nearest fluid pixel is the same."""
+    shape: tuple[int, int]
+    window: tuple[slice, slice]
+    distance: np.ndarray  # on the window
+    rows: np.ndarray      # the nearest fluid pixel's row and column, in window coordinates
+    cols: np.ndarray
+
+    @classmethod
+    def of(cls, fluid: np.ndarray, reach_px: float) -> NearestFluid:
+        """The transform of ``fluid`` (which must have a pixel) for reaches up to ``reach_px``."""
+        from scipy.ndimage import distance_transform_edt
+
+        window = bounding_window(fluid, int(np.ceil(reach_px)) + 1)
+        distance, (rows, cols) = distance_transform_edt(~fluid[window], return_indices=True)
+        return cls(fluid.shape, window, distance, rows, cols)
+
+    def near(self, reach_px: float) -> np.ndarray:
+        """Pixels at most ``reach_px`` (no more than the reach it was made for) from a fluid pixel."""
+        out = np.zeros(self.shape, bool)
+        out[self.window] = self.distance <= reach_px
+        return out
+
+    def spread(self, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """``values`` at each ``mask`` pixel taken from its nearest fluid pixel (0 off the mask; the
+        mask must lie within the reach)."""
+        w = self.window
+        out = np.zeros(values.shape, np.float32)
+        out[w] = np.where(mask[w], values[w][self.rows, self.cols], 0.0)
+        return out
+
+
+def near(fluid: np.ndarray, reach_px: float) -> np.ndarray:
+    """Pixels at most ``reach_px`` (Euclidean, pixel centres) from a ``fluid`` pixel."""
     if reach_px <= 0 or not fluid.any():
         return fluid
-    from scipy.ndimage import distance_transform_edt
-
-    window = bounding_window(fluid, int(np.ceil(reach_px)) + 1)
-    out = np.zeros(fluid.shape, bool)
-    out[window] = distance_transform_edt(~fluid[window]) <= reach_px
-    return out
+    return NearestFluid.of(fluid, reach_px).near(reach_px)
 
 
-def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5, reach_px: float = 0.0) -> np.ndarray:
+def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5, reach_px: float = 0.0,
+                 lengths: np.ndarray | None = None, nearest: NearestFluid | None = None) -> np.ndarray:
     """The pixels a refined normal map shows as fluid: where the predicted normal is at least
     ``threshold`` long (Choi et al. 3.3 drop shorter ones as noise) within ``reach_px`` of the
     splat's fluid (``REFINED_REACH_PX`` at the working scale, scaled to the image by the renderer).
-    The one rule for rendering, evaluation and the trainer's choice of its best checkpoint."""
-    return normal_mask(normals, threshold) & near(fluid, reach_px)
+    The one rule for rendering, evaluation and the trainer's choice of its best checkpoint.
+    ``lengths`` and ``nearest`` (of ``fluid``) save recomputing what the caller has."""
+    if nearest is not None and reach_px > 0:
+        return normal_mask(normals, threshold, lengths) & nearest.near(reach_px)
+    return normal_mask(normals, threshold, lengths) & near(fluid, reach_px)
 
 
 def angular_errors(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Angles in degrees between unit-normalised ``pred`` and ``target`` at ``mask`` pixels."""
     a = pred[mask].astype(np.float64)
     b = target[mask].astype(np.float64)
-    a /= np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
-    b /= np.maximum(np.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
+    a /= np.maximum(length(a), 1e-12)[:, None]
+    b /= np.maximum(length(b), 1e-12)[:, None]
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
 
 

@@ -20,8 +20,7 @@ from pipeline.device import warp_device
 from pipeline.evaluate.metrics import angular_errors, iou, summarize_angles
 from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, spread
-from pipeline.methods import extend_depth, method_maps, normal_source, refine, shade_frame
-from pipeline.model.data import input_channels
+from pipeline.methods import method_maps, normal_source, refine, shade_frame
 from pipeline.model.scale import median_radius_px
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
@@ -47,8 +46,7 @@ class HeldOut:
 def _maps(method: str, ch: dict, refiner, threshold: float, focal_px: float, radius: float):
     """(normals, mask, depth) of a method from a dataset frame's channels."""
     if method == "refined":
-        n, mask = refine(refiner, ch, threshold, focal_px, radius)
-        return n, mask, extend_depth(ch[input_channels(refiner.splat).blurred], mask)
+        return refine(refiner, ch, threshold, focal_px, radius)
     if method == "mesh":
         return stack(ch, "target.N."), ch["target.A"] > 0, ch["target.Z"]
     maps = method_maps(method, ch)

@@ -22,6 +22,7 @@ from pipeline.metaball import kernels as K
 from pipeline.parallel import Launcher
 from pipeline.screen import row_bands
 from pipeline.surface import hash_grid
+from pipeline.vectors import length
 
 _EMPTY = 1.0e30
 _NO_OWNER = 2**31 - 1
@@ -226,9 +227,9 @@ def decode_gbuffers(encoded: np.ndarray, params: MetaballParams, min_encoded_nor
     p = params
     e = np.asarray(encoded, np.float32)
     enc_n = e[4:7].transpose(1, 2, 0)
-    mask = np.linalg.norm(enc_n, axis=-1) > min_encoded_normal
+    mask = length(enc_n) > min_encoded_normal
     n = 2.0 * enc_n - 1.0
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    n /= np.maximum(length(n), 1e-12)[..., None]
     depth = p.depth_near + e[3] * (p.depth_far - p.depth_near)
     return {"colour": np.where(mask[..., None], e[0:3].transpose(1, 2, 0), 0.0).astype(np.float32),
             "depth": np.where(mask, depth, 0.0).astype(np.float32),

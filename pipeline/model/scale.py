@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from pipeline.vectors import length
+
 
 def projected_radius_px(depth: np.ndarray, focal_px: float, radius: float) -> np.ndarray:
     """The particle radius on screen (px) at each pixel of a depth map, 0 where it is empty."""
@@ -65,8 +67,8 @@ def area_average(values: np.ndarray, weight: np.ndarray, size: tuple[int, int]) 
 
 def unit(normals: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """C=3 first: normals scaled to unit length where ``keep``, zero elsewhere."""
-    length = np.linalg.norm(normals, axis=0)
-    return np.where(keep & (length > 1e-12), normals / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+    n = length(normals, axis=0)
+    return np.where(keep & (n > 1e-12), normals / np.maximum(n, 1e-12), 0.0).astype(np.float32)
 
 
 @dataclass

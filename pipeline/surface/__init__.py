@@ -22,6 +22,7 @@ from pipeline.parallel import Launcher
 from pipeline.sph import POLY6_NORM, lattice_offsets, particle_volume, spacing
 from pipeline.surface import kernels as K
 from pipeline.timing import Timings
+from pipeline.vectors import length
 
 if TYPE_CHECKING:
     from pipeline.screen import ScreenSpace
@@ -194,7 +195,7 @@ def _grid_normals(grid: np.ndarray, index: np.ndarray) -> np.ndarray:
     """Outward (descending) unit gradient of the grid at the nearest nodes of fractional indices."""
     at = tuple(np.clip(np.rint(index).astype(int), 0, np.asarray(grid.shape) - 1).T)
     n = -np.stack([g[at] for g in np.gradient(grid)], axis=-1)
-    return (n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)).astype(np.float32)
+    return (n / np.maximum(length(n), 1e-12)[..., None]).astype(np.float32)
 
 
 def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volume: float, cell: float,
@@ -255,7 +256,7 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
     with timings("normals"):
         normals = density_normals(centres, g, extents, verts, launch, device)
     # where the analytic gradient vanishes (never in practice) fall back to the grid's gradient
-    bad = np.linalg.norm(normals, axis=1) < 0.5
+    bad = length(normals) < 0.5
     if bad.any():
         normals[bad] = _grid_normals(grid, (verts[bad] - origin) / cell)
     mesh = SurfaceMesh(verts, faces, normals.astype(np.float32), timings)
