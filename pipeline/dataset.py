@@ -36,6 +36,7 @@ from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstru
 from pipeline.surface import kernels as surface_kernels
 from pipeline.timing import Timings
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
+from pipeline.writer import BackgroundWriter
 
 log = logging.getLogger("deep_ssfr")
 CAMERAS = ("static", "orbit")
@@ -90,6 +91,14 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
     init_warp((screen_kernels, surface_kernels), device)  # loaded once here, not by the workers at once
     local = _Worker(device, 1 if workers > 1 else 0)
     timings, lock = Timings(), threading.Lock()
+    # One worker (a GPU): the views' EXRs are compressed on a background thread while the device makes
+    # the next views. Several CPU workers write their own: they keep the cores busy already.
+    writer = BackgroundWriter() if workers == 1 else None
+    writer_timings = Timings()
+
+    def write_view(t: Timings, target: Path, channels: dict[str, np.ndarray], attributes: dict) -> None:
+        with t("write"):
+            write_exr(target, channels, attributes=attributes)
 
     def build(index: int, frame: int) -> None:
         targets = {c: folder / c / frame_name(frame, "exr") for c in CAMERAS}
@@ -123,19 +132,26 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
                 channels.update(raytraced_target_channels(kernels, radius, p, cam, local.ss, local.launch, device, t))
             else:
                 channels.update(target_channels(mesh, cam, local.launch, device, t))
-            with t("write"):
-                write_exr(target, channels, attributes=view_attributes(cam, radius))
+            if writer is None:
+                write_view(t, target, channels, view_attributes(cam, radius))
+            else:
+                writer.submit(write_view, writer_timings, target, channels, view_attributes(cam, radius))
         with lock:
             timings.merge(t)
 
     log.info("dataset %s: %d frames x %d cameras at %dx%d, %d workers", scene.name, len(frames), len(CAMERAS),
              p.width, p.height, workers)
     todo = [(i, frames[i]) for i in (range(len(frames)) if subset is None else subset)]
-    with ThreadPoolExecutor(workers) as pool, tqdm(total=len(todo), desc=f"dataset {scene.name}",
-                                                   unit="frame") as bar:
-        for fut in [pool.submit(build, i, f) for i, f in todo]:
-            fut.result()
-            bar.update()
+    try:
+        with ThreadPoolExecutor(workers) as pool, tqdm(total=len(todo), desc=f"dataset {scene.name}",
+                                                       unit="frame") as bar:
+            for fut in [pool.submit(build, i, f) for i, f in todo]:
+                fut.result()
+                bar.update()
+    finally:
+        if writer is not None:
+            writer.close()  # every queued view written (or its error raised) before the manifest
+    timings.merge(writer_timings)
     return timings
 
 

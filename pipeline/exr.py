@@ -17,6 +17,7 @@ the image and (1, 1) at the bottom-right; ``worldToNDC`` is projective (divide b
 from __future__ import annotations
 
 import math
+import os
 from fractions import Fraction
 from pathlib import Path
 
@@ -25,6 +26,25 @@ import OpenEXR
 
 from pipeline.cache import CacheError, atomic_path, redo_hint, write_failure
 from pipeline.camera import Camera, lens_of
+
+# OpenEXR compresses and decompresses a file's line blocks on a thread pool of its own when it has
+# one (it has none by default): the same bytes (tested), and a 25-channel 512 x 512 ZIP view
+# written in 136 instead of 229 ms and read in 37 instead of 65 on this 2-core machine; the
+# dataset stage on a GPU and the render's writer thread write on the host while the device works.
+# ``DEEP_SSFR_EXR_THREADS`` sets the pool's size (0: none), e.g. for many Ray workers on one node.
+
+
+def exr_threads() -> int:
+    """The size of OpenEXR's thread pool: ``DEEP_SSFR_EXR_THREADS``, else one per core."""
+    value = os.environ.get("DEEP_SSFR_EXR_THREADS", "").strip()
+    if not value:
+        return os.cpu_count() or 1
+    if not value.isdigit():
+        raise ValueError(f"DEEP_SSFR_EXR_THREADS must be a whole number of threads (0: none), got {value!r}")
+    return int(value)
+
+
+OpenEXR.set_global_thread_count(exr_threads())
 
 COMPRESSIONS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
                 "dwaa": OpenEXR.DWAA_COMPRESSION, "dwab": OpenEXR.DWAB_COMPRESSION}

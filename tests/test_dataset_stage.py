@@ -126,3 +126,18 @@ def test_random_views_cover_the_configured_ranges_and_skip_evaluated_scenes(tmp_
             if r["fluid_share"] > 0.02:
                 radii.append(median_radius_px(ch["aniso.Z"], focal_px, radius))
     assert radii and 0.6 <= min(radii) and max(radii) <= 6.0
+
+
+def test_one_worker_writing_in_the_background_gives_the_files_of_two(tmp_path):
+    """With one worker (as on a GPU) the views are written on a background thread while the next ones
+    are made; the files must be byte for byte those of two workers writing their own."""
+    files = {}
+    for workers in (1, 2):
+        root = tmp_path / f"w{workers}"
+        root.mkdir()
+        config = shrunk_default(root, workers=workers, random_views=1)
+        assert cli.main(["dataset", "--config", config, "--scene", "dam_break"]) == 0
+        (entry,) = (root / "data" / "dataset").iterdir()
+        files[workers] = {p.relative_to(entry): p.read_bytes() for p in sorted(entry.rglob("*.exr"))}
+    assert len(files[1]) == 6  # 2 frames x (2 camera paths + 1 random view)
+    assert files[1] == files[2]

@@ -116,3 +116,37 @@ def test_the_focal_length_in_pixels_comes_back_from_the_header(tmp_path):
         write_exr(tmp_path / "f.exr", {"Z": np.zeros((h, w), np.float32)}, attributes=camera_attributes(cam))
         assert header_focal_px(read_exr_header(tmp_path / "f.exr")) == pytest.approx(cam.focal_px, rel=1e-5)
     assert header_focal_px({}) is None
+
+
+def test_openexr_threads_write_the_same_bytes(tmp_path):
+    """pipeline.exr gives OpenEXR a thread pool (one thread per core) to compress line blocks in
+    parallel; a file must come out byte for byte as without one, for each lossless and lossy codec."""
+    import OpenEXR
+
+    from pipeline.exr import exr_threads
+
+    rng = np.random.default_rng(4)
+    channels = {f"c{k}": rng.normal(size=(181, 203)).astype(np.float32) for k in range(7)}
+    before = OpenEXR.global_thread_count()
+    assert before == exr_threads() >= 1
+    try:
+        for compression in ("zip", "piz", "dwaa"):
+            files = []
+            for threads in (0, 3):
+                OpenEXR.set_global_thread_count(threads)
+                path = tmp_path / f"{compression}_{threads}.exr"
+                write_exr(path, channels, half=("c1",), compression=compression)
+                files.append(path.read_bytes())
+            assert files[0] == files[1], compression
+    finally:
+        OpenEXR.set_global_thread_count(before)
+
+
+def test_a_bad_exr_thread_count_is_named(monkeypatch):
+    from pipeline.exr import exr_threads
+
+    monkeypatch.setenv("DEEP_SSFR_EXR_THREADS", "many")
+    with pytest.raises(ValueError, match="DEEP_SSFR_EXR_THREADS must be a whole number"):
+        exr_threads()
+    monkeypatch.setenv("DEEP_SSFR_EXR_THREADS", "0")
+    assert exr_threads() == 0
