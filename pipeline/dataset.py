@@ -27,7 +27,7 @@ from pipeline.cache import atomic_path
 from pipeline.camera import Camera, camera_for_frame, random_view
 from pipeline.config import DatasetConfig, SceneConfig
 from pipeline.executor import cluster_cpus, run_tasks, shards
-from pipeline.exr import camera_attributes, read_exr, write_exr
+from pipeline.exr import camera_attributes, read_exr, read_exr_header, write_exr
 from pipeline.frames import frame_name
 from pipeline.parallel import Launcher, init_warp
 from pipeline.screen import ScreenSpace
@@ -49,10 +49,16 @@ def random_view_name(frame: int, view: int) -> str:
     return f"{RANDOM}/{frame_name(frame, 'exr')[:-4]}_v{view}.exr"
 
 
-def view_attributes(camera: Camera, radius: float) -> dict:
+def view_attributes(camera: Camera, radius: float, mask: np.ndarray) -> dict:
     """Header of a dataset view: the camera (standard attributes) and the particle radius, from which
-    the refiner's inputs express depths in radii and sizes in projected radii."""
-    return {**camera_attributes(camera), "particleRadius": float(radius)}
+    the refiner's inputs express depths in radii and sizes in projected radii, and the share of its
+    pixels that are fluid (``mask``), which the manifest reads without decompressing the view."""
+    return {**camera_attributes(camera), "particleRadius": float(radius), "fluidShare": fluid_share(mask)}
+
+
+def fluid_share(mask: np.ndarray) -> float:
+    """The share of fluid pixels of a view's mask, as the manifest records it."""
+    return round(float(mask.mean()), 5)
 
 
 def random_cameras(scene: str, frame: int, x: np.ndarray, radius: float, p: DatasetConfig) -> list[Camera]:
@@ -132,10 +138,11 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
                 channels.update(raytraced_target_channels(kernels, radius, p, cam, local.ss, local.launch, device, t))
             else:
                 channels.update(target_channels(mesh, cam, local.launch, device, t))
+            attributes = view_attributes(cam, radius, channels["A" if every_filter else "aniso.A"])
             if writer is None:
-                write_view(t, target, channels, view_attributes(cam, radius))
+                write_view(t, target, channels, attributes)
             else:
-                writer.submit(write_view, writer_timings, target, channels, view_attributes(cam, radius))
+                writer.submit(write_view, writer_timings, target, channels, attributes)
         with lock:
             timings.merge(t)
 
@@ -160,18 +167,24 @@ def manifest_records(folder: Path, frames: list[int], validation_camera: str, ra
     the path, split ('val' for the validation camera path, 'train' for random views) and share of
     fluid pixels. Whole held-out scenes are applied by
     the consumers, so changing them does not invalidate a dataset."""
+
+    def share(name: str, mask: str) -> float:
+        """The view's fluid share from its header (the mask itself for a view written without it)."""
+        header = read_exr_header(Path(folder) / name)
+        if "fluidShare" in header:
+            return float(header["fluidShare"])
+        return fluid_share(read_exr(Path(folder) / name, [mask])[mask])
+
     records = []
     for cam_path in CAMERAS:
         for i, frame in enumerate(frames):
             name = f"{cam_path}/{frame_name(frame, 'exr')}"
-            mask = read_exr(Path(folder) / name, ["A"])["A"]
             records.append({"file": name, "camera": cam_path, "frame": frame, "index": i,
                             "split": "val" if cam_path == validation_camera else "train",
-                            "fluid_share": round(float(mask.mean()), 5)})
+                            "fluid_share": share(name, "A")})
     for k in range(random_views):
         for i, frame in enumerate(frames):
             name = random_view_name(frame, k)
-            mask = read_exr(Path(folder) / name, ["aniso.A"])["aniso.A"]
             records.append({"file": name, "camera": RANDOM, "frame": frame, "index": i, "view": k, "split": "train",
-                            "fluid_share": round(float(mask.mean()), 5)})
+                            "fluid_share": share(name, "aniso.A")})
     return records

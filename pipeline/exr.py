@@ -44,7 +44,21 @@ def exr_threads() -> int:
     return int(value)
 
 
-OpenEXR.set_global_thread_count(exr_threads())
+EXR_THREADS = exr_threads()
+
+
+def _stop_pool() -> None:
+    OpenEXR.set_global_thread_count(0)  # its threads finish the queued blocks first, then exit
+
+
+def _start_pool() -> None:
+    OpenEXR.set_global_thread_count(EXR_THREADS)
+
+
+# A forked child (a DataLoader worker) would inherit the pool's bookkeeping but not its threads, and
+# wait forever on its first EXR: the pool stops before a fork and starts again on both sides.
+_start_pool()
+os.register_at_fork(before=_stop_pool, after_in_parent=_start_pool, after_in_child=_start_pool)
 
 COMPRESSIONS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
                 "dwaa": OpenEXR.DWAA_COMPRESSION, "dwab": OpenEXR.DWAB_COMPRESSION}

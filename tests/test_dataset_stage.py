@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.exr import read_exr
+from pipeline.exr import read_exr, read_exr_header
 from stages import cli
 from tests.conftest import ROOT
 
@@ -42,6 +42,7 @@ def test_dataset_smoke_all_scenes(tmp_path):
                 assert ch[name].shape == (64, 64) and np.isfinite(ch[name]).all()
             fluid = ch["A"] > 0
             assert abs(r["fluid_share"] - fluid.mean()) < 1e-4
+            assert read_exr_header(entry / r["file"])["fluidShare"] == r["fluid_share"]
             n = np.stack([ch[f"bilateral.N.{a}"] for a in "XYZ"], -1)
             assert np.allclose(np.linalg.norm(n[fluid], axis=-1), 1, atol=1e-3)
             assert not n[~fluid].any()

@@ -70,9 +70,11 @@ def _write_frames(folder: Path, count: int, size: int = 48) -> list[Path]:
     paths = []
     for k in range(count):
         path = folder / f"frame_{k:04d}.exr"
+        channels = _ball_channels(size, k)
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-                  **view_attributes(Camera(look_at((0, 0, 2), (0, 0, 0)), 40.0, size, size), 0.01)}
-        OpenEXR.File(header, _ball_channels(size, k)).write(str(path))
+                  **view_attributes(Camera(look_at((0, 0, 2), (0, 0, 0)), 40.0, size, size), 0.01,
+                                    channels["aniso.A"])}
+        OpenEXR.File(header, channels).write(str(path))
         paths.append(path)
     return paths
 

@@ -123,12 +123,12 @@ def test_openexr_threads_write_the_same_bytes(tmp_path):
     parallel; a file must come out byte for byte as without one, for each lossless and lossy codec."""
     import OpenEXR
 
-    from pipeline.exr import exr_threads
+    from pipeline.exr import EXR_THREADS
 
     rng = np.random.default_rng(4)
     channels = {f"c{k}": rng.normal(size=(181, 203)).astype(np.float32) for k in range(7)}
     before = OpenEXR.global_thread_count()
-    assert before == exr_threads() >= 1
+    assert before == EXR_THREADS >= 1
     try:
         for compression in ("zip", "piz", "dwaa"):
             files = []
@@ -150,3 +150,32 @@ def test_a_bad_exr_thread_count_is_named(monkeypatch):
         exr_threads()
     monkeypatch.setenv("DEEP_SSFR_EXR_THREADS", "0")
     assert exr_threads() == 0
+
+
+def test_a_forked_child_reads_and_writes_exrs(tmp_path):
+    """OpenEXR's thread pool does not survive a fork (a DataLoader worker hung on its first view):
+    pipeline.exr stops it before a fork and starts it again, so a child reads and writes."""
+    import multiprocessing
+
+    import OpenEXR
+
+    from pipeline.exr import EXR_THREADS
+
+    rng = np.random.default_rng(6)
+    channels = {f"c{k}": rng.normal(size=(256, 256)).astype(np.float32) for k in range(6)}
+    write_exr(tmp_path / "parent.exr", channels)
+    ctx = multiprocessing.get_context("fork")
+    child = ctx.Process(target=_copy_exr, args=(tmp_path / "parent.exr", tmp_path / "child.exr"))
+    child.start()
+    child.join(60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("the forked child hung on an EXR")
+    assert child.exitcode == 0
+    assert OpenEXR.global_thread_count() == EXR_THREADS
+    for name, a in read_exr(tmp_path / "child.exr").items():
+        np.testing.assert_array_equal(a, channels[name])
+
+
+def _copy_exr(source, target) -> None:
+    write_exr(target, read_exr(source))
