@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
@@ -21,7 +22,7 @@ from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import input_channels, prepare
 from pipeline.model.inference import Refiner
-from pipeline.model.scale import resize_normals
+from pipeline.model.scale import resize_normal_map
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
@@ -126,15 +127,16 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     with t("prepare"):
         view = prepare(channels, refiner.spec, focal_px, radius)
     with t("network"):
-        n = refiner(view.inputs, view.fluid)
+        n = refiner.run(view.inputs, view.fluid)  # 3 x h x w, on the refiner's device (queued on a GPU)
     with t("post"):
-        n = resize_normals(n, fluid.shape)
+        # the distance transform on the host while a GPU still runs the network; the rest on the device
         reach = REFINED_REACH_PX / view.scale if refiner.spec.features == "radius" else 0.0
-        lengths = length(n)
         nearest = NearestFluid.of(fluid, reach) if reach > 0 and fluid.any() else None
-        mask = refined_mask(n, fluid, threshold, reach, lengths, nearest)
-        out = np.zeros(n.shape, np.float32)
-        out[mask] = n[mask] / np.maximum(lengths[mask], 1e-6)[:, None]
+        n = resize_normal_map(n, fluid.shape)
+        lengths = length(n, axis=0)
+        mask_t = refined_mask(n.movedim(0, -1), fluid, threshold, reach, lengths, nearest)
+        out = torch.where(mask_t, n / lengths.clamp_min(1e-6), 0.0).permute(1, 2, 0).contiguous().cpu().numpy()
+        mask = mask_t.cpu().numpy()
         if nearest is not None and np.array_equal(blurred > 0, fluid):
             depth = nearest.spread(blurred, mask)
         else:

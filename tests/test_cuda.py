@@ -122,3 +122,32 @@ def test_dataset_stage_on_the_gpu_matches_the_cpu(tmp_path, monkeypatch):
         dots = np.sum(stack(a, "target.N.")[both] * stack(b, "target.N.")[both], -1)
         assert np.degrees(np.arccos(np.clip(dots, -1, 1))).mean() < 0.5
         np.testing.assert_allclose(b["target.Z"][both], a["target.Z"][both], atol=1e-4)
+
+
+def test_refine_on_the_gpu_keeps_its_post_processing_there_and_matches_the_cpu():
+    """The refiner's output stays on the GPU for resizing, lengths, the mask and normalisation
+    (``Refiner.run``); the result agrees with the CPU's (convolutions may round differently)."""
+    from pipeline.config import DatasetConfig
+    from pipeline.methods import refine
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.inference import load_refiner
+    from pipeline.parallel import Launcher
+    from pipeline.surface import particle_ellipsoids
+    from pipeline.views import screen_space_inputs
+
+    x = (np.random.default_rng(2).normal(size=(2500, 3)) * (0.06, 0.03, 0.05) + (0, 0, -0.5)).astype(np.float32)
+    cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 160, 160)
+    ss, launch = ScreenSpace("cpu"), Launcher("cpu")
+    ch = screen_space_inputs(x, 0.004, cam, DatasetConfig(), ss, filters=("bilateral",),
+                             ellipsoids=particle_ellipsoids(x, 0.004, DatasetConfig(), launch),
+                             aniso_filters=("bilateral",))
+    ss.close()
+    launch.close()
+    out = {d: refine(load_refiner(SHIPPED_WEIGHTS, d), ch, 0.5, cam.focal_px, 0.004) for d in ("cpu", "cuda")}
+    (n_cpu, m_cpu, z_cpu), (n_gpu, m_gpu, z_gpu) = out["cpu"], out["cuda"]
+    assert isinstance(n_gpu, np.ndarray) and n_gpu.dtype == np.float32
+    assert (m_cpu == m_gpu).mean() > 0.995 and m_cpu.sum() > 100
+    both = m_cpu & m_gpu
+    angle = np.degrees(np.arccos(np.clip(np.sum(n_cpu[both] * n_gpu[both], -1), -1, 1)))
+    assert np.median(angle) < 0.5
+    np.testing.assert_array_equal(z_gpu[both], z_cpu[both])

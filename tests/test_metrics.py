@@ -125,3 +125,9 @@ def test_vector_length_is_numpys_norm_bit_for_bit(dtype):
     np.testing.assert_array_equal(length(chw, axis=0), np.linalg.norm(chw, axis=0))
     x, y, z = np.moveaxis(v, -1, 0)
     assert not np.array_equal(np.sqrt((z * z + y * y) + x * x), np.linalg.norm(v, axis=-1))
+    # a torch tensor (the refiner's output on its device) gets the same lengths, as a tensor
+    import torch
+
+    t = length(torch.from_numpy(chw), axis=0)
+    assert isinstance(t, torch.Tensor)
+    np.testing.assert_array_equal(t.numpy(), np.linalg.norm(chw, axis=0))

@@ -81,10 +81,16 @@ def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5,
     ``threshold`` long (Choi et al. 3.3 drop shorter ones as noise) within ``reach_px`` of the
     splat's fluid (``REFINED_REACH_PX`` at the working scale, scaled to the image by the renderer).
     The one rule for rendering, evaluation and the trainer's choice of its best checkpoint.
-    ``lengths`` and ``nearest`` (of ``fluid``) save recomputing what the caller has."""
-    if nearest is not None and reach_px > 0:
-        return normal_mask(normals, threshold, lengths) & nearest.near(reach_px)
-    return normal_mask(normals, threshold, lengths) & near(fluid, reach_px)
+    ``lengths`` and ``nearest`` (of ``fluid``) save recomputing what the caller has. ``normals`` (and
+    ``lengths``) may be a torch tensor on the refiner's device (``lengths`` H x W): the mask is then
+    one there too."""
+    within = nearest.near(reach_px) if nearest is not None and reach_px > 0 else near(fluid, reach_px)
+    long_enough = normal_mask(normals, threshold, lengths)
+    if not isinstance(long_enough, np.ndarray):
+        import torch
+
+        within = torch.from_numpy(within).to(long_enough.device)
+    return long_enough & within
 
 
 def angular_errors(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -75,12 +75,17 @@ class Refiner:
         """Whether the input carries depth features besides the normal."""
         return self.spec.auxiliary
 
-    @torch.inference_mode()
     def __call__(self, inputs: np.ndarray, fluid: np.ndarray | None = None) -> np.ndarray:
-        """Refined normals of one C x H x W input; with ``fluid`` (H x W bool) only its window is
-        computed and the rest of the output is the zero vector."""
+        """Refined normals of one C x H x W input (H x W x 3 on the host); with ``fluid`` (H x W
+        bool) only its window is computed and the rest of the output is the zero vector."""
+        return self.run(inputs, fluid).permute(1, 2, 0).contiguous().cpu().numpy()
+
+    @torch.inference_mode()
+    def run(self, inputs: np.ndarray, fluid: np.ndarray | None = None) -> torch.Tensor:
+        """``__call__``'s normals as a 3 x H x W float32 tensor left on the refiner's device (on a
+        GPU the call returns while the network runs)."""
         _, h, w = inputs.shape
-        out = np.zeros((h, w, 3), np.float32)
+        out = torch.zeros((3, h, w), dtype=torch.float32, device=self.device)
         window = (0, h, 0, w)
         if self.crop and fluid is not None:
             window = fluid_window(fluid, self.margin, self.stride)
@@ -92,8 +97,7 @@ class Refiner:
         if ph or pw:
             x = nn.functional.pad(x, (0, pw, 0, ph))
         x = x.to(self.device).contiguous(memory_format=torch.channels_last)
-        y = self.net(x)[0, :, : y1 - y0, : x1 - x0]
-        out[y0:y1, x0:x1] = y.permute(1, 2, 0).float().cpu().numpy()
+        out[:, y0:y1, x0:x1] = self.net(x)[0, :, : y1 - y0, : x1 - x0].float()
         return out
 
 

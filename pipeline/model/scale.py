@@ -113,11 +113,16 @@ def scale_view(normals: np.ndarray, raw: np.ndarray, blurred: np.ndarray, focal_
                       size[1] / w, out_target)
 
 
+def resize_map(values: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tensor:
+    """A C x H x W float32 tensor resized to ``size`` by torch's ``mode`` ('bilinear', 'nearest',
+    'area'), on its device."""
+    extra = {"align_corners": False} if mode == "bilinear" else {}
+    return torch.nn.functional.interpolate(values[None], size=size, mode=mode, **extra)[0]
+
+
 def _resize(values: np.ndarray, size: tuple[int, int], mode: str) -> np.ndarray:
     """C x H x W images resized to ``size`` by torch's ``mode`` ('bilinear', 'nearest', 'area')."""
-    t = torch.from_numpy(np.ascontiguousarray(values, np.float32))[None]
-    extra = {"align_corners": False} if mode == "bilinear" else {}
-    return torch.nn.functional.interpolate(t, size=size, mode=mode, **extra)[0].numpy()
+    return resize_map(torch.from_numpy(np.ascontiguousarray(values, np.float32)), size, mode).numpy()
 
 
 def _upscale_view(normals: np.ndarray, raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray, focal_px: float,
@@ -143,5 +148,12 @@ def resize_normals(normals: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     view's ``size`` (h, w): bilinear when growing, area-averaged when shrinking."""
     if normals.shape[:2] == tuple(size):
         return normals
-    mode = "bilinear" if size[0] >= normals.shape[0] else "area"
-    return np.ascontiguousarray(np.moveaxis(_resize(np.moveaxis(normals, -1, 0), size, mode), 0, -1))
+    back = resize_normal_map(torch.from_numpy(np.ascontiguousarray(np.moveaxis(normals, -1, 0), np.float32)), size)
+    return np.ascontiguousarray(np.moveaxis(back.numpy(), 0, -1))
+
+
+def resize_normal_map(normals: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """``resize_normals`` for a 3 x H x W tensor, on its device."""
+    if tuple(normals.shape[1:]) == tuple(size):
+        return normals
+    return resize_map(normals, size, "bilinear" if size[0] >= normals.shape[1] else "area")
