@@ -284,3 +284,22 @@ def test_the_frame_shares_one_sphere_splat_between_its_filter_methods(ss, launch
         for key in ("normals", "depth", "mask", "thickness"):
             np.testing.assert_array_equal(together[key], alone[key], err_msg=f"{method} {key}")
         assert ("splat" in t.as_dict()) == (k == 0), f"{method}: {t.as_dict()}"
+
+
+def test_ellipsoid_shapes_turn_into_view_space_as_numpy_did(ss):
+    """The splat turns each world-space shape matrix into view space on the device (``view_shapes``);
+    it must give the float32 matrices the host's float64 einsum gave, bit for bit."""
+    import warp as wp
+
+    from pipeline.screen import kernels as K
+
+    rng = np.random.default_rng(8)
+    a = rng.normal(size=(4000, 3, 3))
+    shapes = ((a @ a.transpose(0, 2, 1)) * rng.uniform(10, 500, size=(4000, 1, 1))).astype(np.float32)
+    cam = Camera(look_at((0.3, 0.8, 1.1), (0.05, 0.1, -0.2)), 40.0, 64, 64)
+    rot = cam.view[:3, :3]
+    want = np.einsum("ij,njk,lk->nil", rot, shapes.astype(np.float64), rot).astype(np.float32)
+    out = wp.zeros(len(shapes), dtype=wp.mat33, device="cpu")
+    ss.launch(K.view_shapes, len(shapes), [wp.array(shapes, dtype=wp.mat33, device="cpu"),
+                                           wp.mat33d(*rot.astype(np.float64).ravel()), out])
+    np.testing.assert_array_equal(out.numpy(), want)

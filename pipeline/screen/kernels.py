@@ -96,6 +96,26 @@ def splat_spheres(
 
 
 @wp.kernel
+def view_shapes(offset: int, shapes: wp.array(dtype=wp.mat33), rot: wp.mat33d, out: wp.array(dtype=wp.mat33)):
+    """``out[i] = rot shapes[i] rot^T``: world-space ellipsoid shapes into view space, in float64 and
+    in numpy's ``einsum("ij,njk,lk->nil")`` order (j outer, k inner, each term (R S) R summed from
+    0), so the float32 result is the one the host computed before, bit for bit (tested)."""
+    i = wp.tid() + offset
+    s = shapes[i]
+    m = wp.mat33()
+    for a in range(3):
+        for b in range(3):
+            acc = wp.float64(0.0)
+            for j in range(3):
+                for k in range(3):
+                    p = rot[a, j] * wp.float64(s[j, k])
+                    q = p * rot[b, k]
+                    acc = acc + q
+            m[a, b] = wp.float32(acc)
+    out[i] = m
+
+
+@wp.kernel
 def splat_ellipsoids(
     offset: int,
     centers_view: wp.array(dtype=wp.vec3),
