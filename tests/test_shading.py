@@ -208,3 +208,28 @@ def test_run_length_encoded_hdr_matches_openimageio(tmp_path):
     expected = oiio.ImageBuf(str(tmp_path / "env.hdr")).get_pixels(oiio.FLOAT)
     np.testing.assert_allclose(load_environment(tmp_path / "env.hdr"), expected, rtol=1e-6)
     assert (np.abs(expected - rgb) <= rgb.max(-1, keepdims=True) / 64).all(), "RGBE keeps 8 bits of the largest"
+
+
+def test_the_gpu_way_of_returning_passes_gives_the_same_passes():
+    """On a GPU the shader writes device arrays and copies each into its host pass (``_result``);
+    run that way on the CPU (a device array, then the copy) it must give every pass as the direct
+    write into the host arrays does."""
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(SIZE, SIZE, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[..., 2] = np.abs(n[..., 2])
+    depth = rng.uniform(0.5, 2.0, (SIZE, SIZE)).astype(np.float32)
+    thickness = rng.uniform(0.0, 0.2, (SIZE, SIZE)).astype(np.float32)
+    mask = (rng.random((SIZE, SIZE)) > 0.3).astype(np.float32)
+    bg = rng.random((SIZE, SIZE, 3)).astype(np.float32)
+    bgd = rng.uniform(1.0, 3.0, (SIZE, SIZE)).astype(np.float32)
+    passes = []
+    for device_way in (False, True):
+        shader = Shader("cpu")
+        shader._cpu = not device_way
+        out = shader.shade(n, depth, thickness, mask, bg, bgd, _camera(), RenderConfig())
+        passes.append(out)
+        shader.close()
+    for name in ("beauty", "fluid", "depth", "normals_view", "normals_world"):
+        np.testing.assert_array_equal(getattr(passes[1], name), getattr(passes[0], name), err_msg=name)
+    assert passes[0].beauty[..., 3].min() > 0

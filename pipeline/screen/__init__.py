@@ -78,8 +78,10 @@ class ScreenSpace:
 
     @staticmethod
     def _download(a: wp.array, shape: tuple[int, ...]) -> np.ndarray:
-        # a copy: the buffer is overwritten by the next frame
-        return a.numpy().reshape(shape).copy()
+        """The buffer's pixels as a host array of their own: on a GPU ``numpy()`` copies them out
+        already; on the CPU it is a view of the buffer, which the next frame overwrites."""
+        out = a.numpy().reshape(shape)
+        return out if a.device.is_cuda else out.copy()
 
     # ---- kernels on device arrays ---------------------------------------------------------------
 
