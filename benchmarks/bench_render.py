@@ -183,11 +183,11 @@ def main() -> None:
                       f"{row['network']:6.1f} {row['post']:6.1f} {row['fast_refiner_nocrop']:7.1f} "
                       f"{row['plain_refiner']:7.1f} {row['plain_refiner'] / row['refiner']:7.2f}x", flush=True)
     print("\ninputs = anisotropy (ellipsoid input only) + splat + filter + normals + copies; refiner = folded, "
-          "channels-last, cropped to the fluid (nocrop: whole image): prep (the input at the working scale, on "
-          "the host) + net (the generator) + post (back to the view's size, mask and depth; on the refiner's device "
-          "but for the reach's distance transform and the depth); plain = the training-time module's forward "
-          "pass; pipelined = a frame of the render loop, inputs + refiner + shading with the EXR written on a "
-          "background thread")
+          "channels-last, cropped to the fluid (nocrop: whole image): prep (the input at the working scale: "
+          "numpy on a CPU, torch on the refiner's GPU) + net (the generator) + post (back to the view's size, "
+          "mask and depth; on the refiner's device but for the reach's distance transform and the depth); "
+          "plain = the training-time module's forward pass; pipelined = a frame of the render loop, inputs + "
+          "refiner + shading with the EXR written on a background thread")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     if args.plot:

@@ -1,7 +1,15 @@
-"""Per-pixel vector arithmetic on arrays of 3-vectors (normal maps, gradients): numpy, or torch
-tensors on the device that made them."""
+"""Per-pixel arithmetic on images and maps of 3-vectors (normal maps, gradients) that runs on numpy
+arrays or on torch tensors on the device that holds them, so one function serves the host (numpy, as
+in training) and a GPU (torch, without a round trip through the host).
+
+``xp(a)`` is the module of ``a``'s kind (``numpy`` or ``torch``): the names the two share (``where``,
+``clip``, ``tanh``, ``log2``, ``stack``, ``concatenate``, ``abs``, ``float32``) work through it; the
+rest is here. numpy arrays give numpy's own results, bit for bit.
+"""
 
 from __future__ import annotations
+
+from types import ModuleType
 
 import numpy as np
 
@@ -21,3 +29,51 @@ def length(v, axis: int = -1):
 
         return torch.from_numpy(np.sqrt(squares.numpy()))
     return squares.sqrt()
+
+
+def is_tensor(a) -> bool:
+    """Whether ``a`` is a torch tensor (without importing torch for numpy arrays)."""
+    return not isinstance(a, np.ndarray) and type(a).__module__.startswith("torch")
+
+
+def xp(a) -> ModuleType:
+    """``numpy`` or ``torch``, whichever ``a`` belongs to."""
+    if is_tensor(a):
+        import torch
+
+        return torch
+    return np
+
+
+def as_float32(a):
+    """``a`` as float32 (a copy, as ``astype`` makes), in its own kind."""
+    if is_tensor(a):
+        import torch
+
+        return a.to(torch.float32, copy=True)
+    return np.asarray(a).astype(np.float32)
+
+
+def median(a) -> float:
+    """The median of ``a``'s values, as ``np.median`` gives it (the mean of the two middle values of
+    an even count; torch's own ``median`` takes the lower one)."""
+    if not is_tensor(a):
+        return float(np.median(a))
+    v = a.flatten().sort().values
+    n = v.numel()
+    return float(((v[(n - 1) // 2] + v[n // 2]) / 2).item())
+
+
+def box_mean(a, size: int):
+    """The mean of an H x W image over a ``size`` x ``size`` window (odd) about each pixel, zeros
+    beyond the edges: ``scipy.ndimage.uniform_filter(a, size, mode='constant')``, or two average
+    pools on a tensor's device."""
+    if not is_tensor(a):
+        from scipy.ndimage import uniform_filter
+
+        return uniform_filter(a, size, mode="constant")
+    import torch
+
+    half = size // 2
+    x = torch.nn.functional.avg_pool2d(a[None, None], (size, 1), stride=1, padding=(half, 0))
+    return torch.nn.functional.avg_pool2d(x, (1, size), stride=1, padding=(0, half))[0, 0]

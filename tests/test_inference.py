@@ -70,18 +70,13 @@ def test_refiner_without_fluid_returns_zeros():
     assert not Refiner(g)(x, np.zeros((64, 64), bool)).any()
 
 
-def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
-    """``refine`` computes the mask's reach and the extended depth from one distance transform and
-    normalises only masked pixels; it must give what the separate rules give (``refined_mask``,
-    ``extend_depth``, the normalised network output), at a size the working scale changes."""
+def _refine_view():
+    """The shipped refiner and the channels of a small blob of particles at 160 px, which its
+    working scale resamples (with the ellipsoid splat when the refiner takes it)."""
     from pipeline.camera import Camera, look_at
     from pipeline.config import DatasetConfig
-    from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
-    from pipeline.methods import extend_depth, refine
     from pipeline.model import SHIPPED_WEIGHTS
-    from pipeline.model.data import input_channels, prepare
     from pipeline.model.inference import load_refiner
-    from pipeline.model.scale import resize_normals
     from pipeline.screen import ScreenSpace
     from pipeline.views import screen_space_inputs
 
@@ -101,6 +96,19 @@ def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
                                       aniso_filters=("bilateral",)))
         launch.close()
         ss.close()
+    return refiner, ch, cam
+
+
+def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
+    """``refine`` computes the mask's reach and the extended depth from one distance transform and
+    normalises only masked pixels; it must give what the separate rules give (``refined_mask``,
+    ``extend_depth``, the normalised network output), at a size the working scale changes."""
+    from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
+    from pipeline.methods import extend_depth, refine
+    from pipeline.model.data import input_channels, prepare
+    from pipeline.model.scale import resize_normals
+
+    refiner, ch, cam = _refine_view()
     names = input_channels(refiner.splat)
     normals, mask, depth = refine(refiner, ch, 0.5, cam.focal_px, 0.004)
     view = prepare(ch, refiner.spec, cam.focal_px, 0.004)
@@ -113,3 +121,26 @@ def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
     np.testing.assert_array_equal(normals[~mask], 0.0)
     np.testing.assert_array_equal(normals[mask], raw[mask] / np.linalg.norm(raw[mask], axis=-1, keepdims=True))
     np.testing.assert_array_equal(depth, extend_depth(ch[names.blurred], mask))
+
+
+def test_refine_makes_the_input_on_the_device_as_numpy_does():
+    """On a GPU the refiner's input is made in torch from the uploaded maps. The same code on CPU
+    tensors must give numpy's refined normals, mask and depth to rounding: a wrong axis, a lost
+    scale or a box filter of the wrong size would move them far more."""
+    from pipeline.methods import refine
+    from pipeline.model.data import input_channels, prepare
+
+    refiner, ch, cam = _refine_view()
+    host = refine(refiner, ch, 0.5, cam.focal_px, 0.004, on_device=False)
+    dev = refine(refiner, ch, 0.5, cam.focal_px, 0.004, on_device=True)
+    names = input_channels(refiner.splat)
+    tensors = {c: torch.from_numpy(ch[c]) for c in (*names.normal, names.raw, names.blurred)}
+    a, b = prepare(ch, refiner.spec, cam.focal_px, 0.004), prepare(tensors, refiner.spec, cam.focal_px, 0.004)
+    assert isinstance(b.inputs, torch.Tensor) and b.scale == a.scale != 1.0
+    np.testing.assert_array_equal(b.fluid.numpy(), a.fluid)
+    np.testing.assert_allclose(b.inputs.numpy(), a.inputs, atol=5e-5)
+    (n0, m0, z0), (n1, m1, z1) = host, dev
+    assert m0.sum() > 100 and (m0 == m1).mean() > 0.999
+    both = m0 & m1
+    np.testing.assert_allclose(n1[both], n0[both], atol=1e-3)
+    np.testing.assert_array_equal(z1[both], z0[both])

@@ -131,3 +131,24 @@ def test_vector_length_is_numpys_norm_bit_for_bit(dtype):
     t = length(torch.from_numpy(chw), axis=0)
     assert isinstance(t, torch.Tensor)
     np.testing.assert_array_equal(t.numpy(), np.linalg.norm(chw, axis=0))
+
+
+def test_median_and_box_mean_agree_on_numpy_and_torch():
+    """``pipeline.vectors.median`` takes the mean of the two middle values of an even count, as
+    numpy does (torch's own median takes the lower); ``box_mean`` is scipy's constant-edge
+    uniform filter on both kinds, windows wider than the image included."""
+    import torch
+    from scipy.ndimage import uniform_filter
+
+    from pipeline.vectors import box_mean, median, xp
+
+    even = np.array([4.0, 1.0, 3.0, 2.0], np.float32)
+    assert median(even) == median(torch.from_numpy(even)) == 2.5
+    assert median(torch.tensor([5.0, 1.0, 3.0])) == 3.0
+    img = np.random.default_rng(1).uniform(size=(13, 21)).astype(np.float32)
+    for size in (1, 3, 9, 31):
+        want = uniform_filter(img, size, mode="constant")
+        np.testing.assert_array_equal(box_mean(img, size), want)
+        got = box_mean(torch.from_numpy(img), size)
+        assert got.shape == img.shape and xp(got) is torch
+        np.testing.assert_allclose(got.numpy(), want, atol=1e-6)

@@ -143,3 +143,25 @@ def test_small_particles_are_scaled_up_and_back():
     back = resize_normals(np.moveaxis(view.normals, 0, -1), (40, 40))
     inner = np.hypot(yy - 20, xx - 20) < 10
     np.testing.assert_allclose(back[inner], np.moveaxis(n, 0, -1)[inner], atol=1e-5)
+
+
+@pytest.mark.parametrize("spec, scale", [(InputSpec(True, "ellipsoid", "radius", 4.0), 1.0),
+                                         (InputSpec(True, "ellipsoid", "radius", 3.0), 0.708),
+                                         (InputSpec(True, "ellipsoid", "radius", 12.0), 2.833),
+                                         (InputSpec(False, "ellipsoid", "radius", 3.0), 0.708),
+                                         (InputSpec(True, "ellipsoid", "frame", 0.0), 1.0)])
+def test_prepare_on_tensors_gives_numpys_input(spec, scale):
+    """The refiner's input made from torch tensors (as on a GPU) is numpy's to rounding, at the
+    working scale, scaled down (area) and up (bilinear), with either depth features, and so is the
+    scaled target; the kind of the input is kept."""
+    import torch
+
+    ch, cam, r = _ball_view(96, 0.6)
+    ch.update({f"target.N.{a}": ch[f"aniso_bilateral.N.{a}"] * 0.5 for a in "XYZ"})
+    want = prepare(ch, spec, cam.focal_px, r, with_target=True)
+    got = prepare({k: torch.from_numpy(v) for k, v in ch.items()}, spec, cam.focal_px, r, with_target=True)
+    assert want.scale == got.scale == pytest.approx(scale, abs=1e-3)
+    assert isinstance(got.inputs, torch.Tensor) and got.inputs.dtype == torch.float32
+    np.testing.assert_array_equal(got.fluid.numpy(), want.fluid)
+    np.testing.assert_allclose(got.inputs.numpy(), want.inputs, atol=5e-5)
+    np.testing.assert_allclose(got.target.numpy(), want.target, atol=1e-6)

@@ -30,6 +30,7 @@ import torch.utils.data
 from pipeline.cache import CacheError
 from pipeline.exr import header_focal_px, read_exr, read_exr_header
 from pipeline.model.scale import ScaledView, median_radius_px, projected_radius_px, scale_view
+from pipeline.vectors import as_float32, box_mean, is_tensor, xp
 
 Splat = Literal["sphere", "ellipsoid"]
 TARGET = ["target.N.X", "target.N.Y", "target.N.Z"]
@@ -95,8 +96,7 @@ RELIEF_SCALE_RADII = 4.0
 """Relief of this many particle radii maps to tanh(1)."""
 
 
-def depth_features(raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray, focal_px: float,
-                   radius: float) -> np.ndarray:
+def depth_features(raw, blurred, fluid, focal_px: float, radius: float):
     """The scale-free depth features of a view (3 x H x W, 0 outside the fluid).
 
     1. bumps: raw minus filtered depth in particle radii (clipped to +-3), the particles' own shape;
@@ -104,29 +104,30 @@ def depth_features(raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray, foca
        radii, in units of 4 radii: which parts stand in front of their neighbourhood, what lies behind
        a discontinuity; depth as such (metres from the camera) never enters;
     3. log2 of the projected particle radius in pixels, halved: how large the particles are here.
-    Depths are metres and ``focal_px`` the focal length in pixels of this (possibly scaled) image."""
-    from scipy.ndimage import uniform_filter
-
-    m = fluid.astype(np.float32)
-    bumps = np.clip((raw - blurred) / radius, -BUMP_CLIP_RADII, BUMP_CLIP_RADII)
+    Depths are metres and ``focal_px`` the focal length in pixels of this (possibly scaled) image.
+    numpy arrays or torch tensors (``pipeline.vectors``)."""
+    x = xp(raw)
+    m = as_float32(fluid)
+    bumps = x.clip((raw - blurred) / radius, -BUMP_CLIP_RADII, BUMP_CLIP_RADII)
     r_px = projected_radius_px(raw, focal_px, radius)
     size = 2 * max(1, round(RELIEF_WINDOW_RADII * (median_radius_px(raw, focal_px, radius) or 1.0))) + 1
-    local = uniform_filter(blurred * m, size, mode="constant") / np.maximum(uniform_filter(m, size, mode="constant"),
-                                                                             1e-6)
-    relief = np.tanh((blurred - local) / (RELIEF_SCALE_RADII * radius))
-    size_px = 0.5 * np.log2(np.maximum(r_px, 1e-3))
-    return np.where(fluid, np.stack([bumps, relief, size_px]), 0.0).astype(np.float32)
+    local = box_mean(blurred * m, size) / x.clip(box_mean(m, size), 1e-6, None)
+    relief = x.tanh((blurred - local) / (RELIEF_SCALE_RADII * radius))
+    size_px = 0.5 * x.log2(x.clip(r_px, 1e-3, None))
+    return as_float32(x.where(fluid, x.stack([bumps, relief, size_px]), 0.0))
 
 
-def frame_features(raw: np.ndarray, blurred: np.ndarray, fluid: np.ndarray) -> np.ndarray:
+def frame_features(raw, blurred, fluid):
     """The depth features of the weights shipped before 2026-12 (2 x H x W): raw and filtered depth
     as (d - mu) / sigma over the frame's fluid pixels."""
+    x = xp(raw)
     if fluid.any():
-        mu = float(raw[fluid].mean())
-        sigma = float(raw[fluid].std()) + 1e-6
+        values = raw[fluid]
+        mu = float(values.mean())
+        sigma = float(values.std(correction=0) if is_tensor(values) else values.std()) + 1e-6
     else:
         mu, sigma = 0.0, 1.0
-    return np.stack([np.where(fluid, (d - mu) / sigma, 0.0) for d in (raw, blurred)]).astype(np.float32)
+    return as_float32(x.stack([x.where(fluid, (d - mu) / sigma, 0.0) for d in (raw, blurred)]))
 
 
 @dataclass
@@ -134,7 +135,7 @@ class Prepared:
     """A view ready for the generator: ``inputs`` (C x h x w) at the working ``scale`` against the
     full image, its ``fluid`` mask there and, for training views, the ``target`` (3 x h x w)."""
 
-    inputs: np.ndarray
+    inputs: np.ndarray  # (or torch tensors, all of them, when the channels were)
     fluid: np.ndarray
     scale: float
     target: np.ndarray | None = None
@@ -144,25 +145,28 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
             radius: float | None = None, with_target: bool = False) -> Prepared:
     """The generator input of a view's channels (and with ``with_target`` its ``target.N.*``), scaled
     to the working scale. 'radius' features need the image's focal length (px) and the particle
-    radius (the dataset writes both into every view's header: ``view_geometry``)."""
+    radius (the dataset writes both into every view's header: ``view_geometry``). The channels may
+    be torch tensors on the refiner's device: the input is then made there (``pipeline.vectors``)."""
     names = input_channels(spec.splat)
-    normal = np.stack([channels[c] for c in names.normal])
     raw, blurred = channels[names.raw], channels[names.blurred]
-    target = np.stack([channels[c] for c in TARGET]).astype(np.float32) if with_target else None
+    x = xp(raw)
+    normal = x.stack([channels[c] for c in names.normal])
+    target = as_float32(x.stack([channels[c] for c in TARGET])) if with_target else None
     if spec.features == "radius" and (not focal_px or not radius):
         raise ValueError("scale-free refiner inputs need the focal length in pixels and the particle radius")
     if spec.features == "radius":
         view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target)
     else:
-        view = ScaledView(normal.astype(np.float32), raw, blurred, raw > 0, 0.0, 1.0, target)
+        view = ScaledView(as_float32(normal), raw, blurred, raw > 0, 0.0, 1.0, target)
     if not spec.auxiliary:
         inputs = view.normals
     elif spec.features == "radius":
-        inputs = np.concatenate([view.normals, depth_features(view.raw, view.blurred, view.fluid, view.focal_px,
-                                                              float(radius))])
+        inputs = x.concatenate([view.normals, depth_features(view.raw, view.blurred, view.fluid, view.focal_px,
+                                                             float(radius))])
     else:
-        inputs = np.concatenate([view.normals, frame_features(view.raw, view.blurred, view.fluid)])
-    return Prepared(np.ascontiguousarray(inputs, np.float32), view.fluid, view.scale, view.target)
+        inputs = x.concatenate([view.normals, frame_features(view.raw, view.blurred, view.fluid)])
+    inputs = inputs.to(torch.float32).contiguous() if is_tensor(inputs) else np.ascontiguousarray(inputs, np.float32)
+    return Prepared(inputs, view.fluid, view.scale, view.target)
 
 
 def view_geometry(header: dict) -> tuple[float | None, float | None]:

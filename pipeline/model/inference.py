@@ -37,10 +37,14 @@ def fold_batch_norm(module: nn.Module) -> nn.Module:
     return module
 
 
-def fluid_window(fluid: np.ndarray, margin: int, stride: int) -> tuple[int, int, int, int] | None:
+def fluid_window(fluid, margin: int, stride: int) -> tuple[int, int, int, int] | None:
     """(y0, y1, x0, x1) of the fluid's bounding box grown by ``margin``, with y0 and x0 on
-    multiples of ``stride`` and clamped to the image; None when there is no fluid."""
-    rows, cols = np.flatnonzero(fluid.any(1)), np.flatnonzero(fluid.any(0))
+    multiples of ``stride`` and clamped to the image; None when there is no fluid. ``fluid`` may be
+    a tensor on a GPU: only its row and column flags come to the host."""
+    rows_any, cols_any = fluid.any(1), fluid.any(0)
+    if isinstance(rows_any, torch.Tensor):
+        rows_any, cols_any = rows_any.cpu().numpy(), cols_any.cpu().numpy()
+    rows, cols = np.flatnonzero(rows_any), np.flatnonzero(cols_any)
     if rows.size == 0:
         return None
     h, w = fluid.shape
@@ -81,9 +85,10 @@ class Refiner:
         return self.run(inputs, fluid).permute(1, 2, 0).contiguous().cpu().numpy()
 
     @torch.inference_mode()
-    def run(self, inputs: np.ndarray, fluid: np.ndarray | None = None) -> torch.Tensor:
+    def run(self, inputs: np.ndarray | torch.Tensor, fluid: np.ndarray | torch.Tensor | None = None) -> torch.Tensor:
         """``__call__``'s normals as a 3 x H x W float32 tensor left on the refiner's device (on a
-        GPU the call returns while the network runs)."""
+        GPU the call returns while the network runs). ``inputs`` and ``fluid`` may be tensors
+        there already (``pipeline.model.data.prepare`` of device channels)."""
         _, h, w = inputs.shape
         out = torch.zeros((3, h, w), dtype=torch.float32, device=self.device)
         window = (0, h, 0, w)
@@ -92,7 +97,8 @@ class Refiner:
             if window is None:
                 return out
         y0, y1, x0, x1 = window
-        x = torch.from_numpy(np.ascontiguousarray(inputs[:, y0:y1, x0:x1]))[None]
+        x = inputs[:, y0:y1, x0:x1]
+        x = (x.contiguous() if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x)))[None]
         ph, pw = (-(y1 - y0)) % self.stride, (-(x1 - x0)) % self.stride
         if ph or pw:
             x = nn.functional.pad(x, (0, pw, 0, ph))
