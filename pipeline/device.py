@@ -40,3 +40,21 @@ def cuda_available() -> bool:
 def warp_device(device: str) -> str:
     """Warp's name for the device."""
     return "cuda:0" if device == "cuda" else "cpu"
+
+
+def torch_waits_for_warp(device: str) -> None:
+    """Order torch's current stream on ``device`` after the work Warp has queued there, so torch
+    reads what Warp wrote (each library has its own CUDA stream; nothing to do on the CPU, where
+    both run in call order)."""
+    if str(device).startswith("cuda"):
+        import warp as wp
+
+        wp.stream_from_torch(device).wait_stream(wp.get_stream(device))
+
+
+def warp_waits_for_torch(device: str) -> None:
+    """Order Warp's stream on ``device`` after the work torch has queued there (the other way)."""
+    if str(device).startswith("cuda"):
+        import warp as wp
+
+        wp.get_stream(device).wait_stream(wp.stream_from_torch(device))

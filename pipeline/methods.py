@@ -28,7 +28,7 @@ from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
-from pipeline.vectors import length
+from pipeline.vectors import host, is_tensor, length
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
@@ -120,12 +120,16 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     the reach when the filtered depth covers the splat, as the screen-space filters make it).
     ``timings`` gets 'prepare', 'network' and 'post'. The input is made ``on_device`` (default: when
     the refiner is not on the CPU): its five maps go there once and become the input in torch, to
-    within 5e-5 of numpy's (tested); on the CPU numpy makes it, as in training.
+    within 5e-5 of numpy's (tested); on the CPU numpy makes it, as in training. The channels may be
+    torch tensors on the device already (``ScreenSpace.inputs(on_device=True)``): the normals then
+    stay a tensor there, for the shader; the mask and depth come to the host either way.
     """
     t = timings or Timings()
     names = input_channels(refiner.splat)
-    fluid = channels[names.fluid] > 0
-    blurred = channels[names.blurred]
+    tensors = is_tensor(channels[names.raw])
+    # the host's two maps before the network is queued: bringing them later would wait for it
+    fluid = host(channels[names.fluid] > 0)
+    blurred = host(channels[names.blurred])
     with t("prepare"):
         source = channels
         if refiner.device.type != "cpu" if on_device is None else on_device:
@@ -141,7 +145,8 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
         n = resize_normal_map(n, fluid.shape)
         lengths = length(n, axis=0)
         mask_t = refined_mask(n.movedim(0, -1), fluid, threshold, reach, lengths, nearest)
-        out = torch.where(mask_t, n / lengths.clamp_min(1e-6), 0.0).permute(1, 2, 0).contiguous().cpu().numpy()
+        out = torch.where(mask_t, n / lengths.clamp_min(1e-6), 0.0).permute(1, 2, 0).contiguous()
+        out = out if tensors else out.cpu().numpy()
         mask = mask_t.cpu().numpy()
         if nearest is not None and np.array_equal(blurred > 0, fluid):
             depth = nearest.spread(blurred, mask)
@@ -181,13 +186,17 @@ def sphere_filters_of(methods) -> tuple[str, ...]:
 def normal_source(method: str, positions: np.ndarray, radius: float, camera: Camera, filters: DatasetConfig,
                   ss: ScreenSpace, launch: Launcher, refiner: Refiner | None = None, threshold: float = 0.5,
                   timings: Timings | None = None, frame_cache: dict | None = None,
-                  metaball: MetaballNet | None = None) -> dict[str, np.ndarray]:
+                  metaball: MetaballNet | None = None, on_device: bool | None = None) -> dict[str, np.ndarray]:
     """Normals, depth, mask and thickness of a method for one view.
 
     ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
     between the methods and views of one frame that need them (ellipsoids, refined on ellipsoids,
     the mesh), the sphere splat of the last view seen with the filters of ``SPHERE_FILTERS`` (set by
-    the caller from ``sphere_filters_of``), whose thickness the metaballs and the mesh shade with."""
+    the caller from ``sphere_filters_of``), whose thickness the metaballs and the mesh shade with.
+
+    The refined method on the ellipsoid splat keeps its maps ``on_device`` (default: when the
+    refiner is not on the CPU): its input channels, normals and thickness stay torch tensors there
+    from the splat to the shader (``shade_frame``), which saves the round trips through the host."""
     t = timings or Timings()
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (one of {', '.join(METHODS)})")
@@ -240,16 +249,17 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
         ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels())
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
+        keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):
             ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
-                                     aniso_filters=aniso_filter)
+                                     aniso_filters=aniso_filter, on_device=keep)
         if method != "refined":
             return method_maps(method, ch)
     else:
         ch = sphere_inputs("bilateral" if method == "refined" else method)
     if method == "refined":
         with t("refiner"):
-            n, mask, depth = refine(refiner, ch, threshold, camera.focal_px, radius, t)
+            n, mask, depth = refine(refiner, ch, threshold, camera.focal_px, radius, t, on_device)
         return {"normals": n, "depth": depth, "mask": mask.astype(np.float32),
                 "thickness": ch[input_channels(refiner.splat).thickness]}
     return method_maps(method, ch)
@@ -258,13 +268,15 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
 def shade_frame(source: dict[str, np.ndarray], background: np.ndarray, background_depth: np.ndarray,
                 camera: Camera, p: RenderConfig, shader: Shader, timings: Timings | None = None) -> RenderedFrame:
     """Deferred shading of a normal source over the background (``p.background`` 'scene') or over
-    nothing ('none': pass a background of the environment alone and a background depth of 0)."""
+    nothing ('none': pass a background of the environment alone and a background depth of 0). The
+    source's maps may be torch tensors on the shader's device (``normal_source`` on a GPU)."""
     t = timings or Timings()
     with t("shading"):
         out = shader.shade(source["normals"], source["depth"], source["thickness"], source["mask"], background,
                            background_depth, camera, p)
-    return RenderedFrame(out.beauty, out.fluid, out.depth, out.normals_view, out.normals_world, source["thickness"],
-                         np.asarray(source["mask"], np.float32))
+        thickness = host(source["thickness"])
+    return RenderedFrame(out.beauty, out.fluid, out.depth, out.normals_view, out.normals_world, thickness,
+                         np.asarray(host(source["mask"]), np.float32))
 
 
 RIM_FILL_STEPS = 16

@@ -45,6 +45,11 @@ def xp(a) -> ModuleType:
     return np
 
 
+def host(a) -> np.ndarray:
+    """``a`` as a numpy array: a tensor copied from its device (a CPU tensor's memory shared)."""
+    return a.detach().cpu().numpy() if is_tensor(a) else np.asarray(a)
+
+
 def as_float32(a):
     """``a`` as float32 (a copy, as ``astype`` makes), in its own kind."""
     if is_tensor(a):

@@ -151,3 +151,44 @@ def test_refine_on_the_gpu_keeps_its_post_processing_there_and_matches_the_cpu()
     angle = np.degrees(np.arccos(np.clip(np.sum(n_cpu[both] * n_gpu[both], -1), -1, 1)))
     assert np.median(angle) < 0.5
     np.testing.assert_array_equal(z_gpu[both], z_cpu[both])
+
+
+def test_the_refined_frame_stays_on_the_gpu_and_shades_as_the_host_frame():
+    """On the GPU the refined method's maps stay torch tensors from the splat to the shader, across
+    Warp's stream and torch's. Several frames in a row (buffers reused, nothing synchronising the
+    host in between but what the code does) must shade as the host way does on the same GPU: a
+    missing stream hand-over reads half-written maps."""
+    import torch
+
+    from pipeline.config import DatasetConfig, RenderConfig
+    from pipeline.methods import normal_source, shade_frame
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.inference import load_refiner
+    from pipeline.parallel import Launcher
+    from pipeline.shading import Shader
+
+    size = 512
+    ss, launch, shader = ScreenSpace("cuda:0"), Launcher("cuda:0"), Shader("cuda:0")
+    refiner = load_refiner(SHIPPED_WEIGHTS, "cuda")
+    bg, bg_depth = np.full((size, size, 3), 0.5, np.float32), np.full((size, size), 10.0, np.float32)
+    rp = RenderConfig(width=size, height=size)
+    for seed in range(3):
+        x = _blob(20000, seed)
+        cam = Camera(look_at((0.05 * seed, 0, 0), (0, 0, -0.6)), 40.0, size, size)
+        frames = {}
+        for on_device in (True, False):
+            src = normal_source("refined", x, 0.004, cam, DatasetConfig(), ss, launch, refiner, on_device=on_device)
+            if on_device and refiner.splat == "ellipsoid":
+                assert isinstance(src["normals"], torch.Tensor) and src["normals"].is_cuda
+            frames[on_device] = shade_frame(src, bg, bg_depth, cam, rp, shader)
+        dev, host = frames[True], frames[False]
+        assert host.mask.sum() > 1000
+        assert (dev.mask == host.mask).mean() > 0.999
+        both = (dev.mask > 0) & (host.mask > 0)
+        np.testing.assert_array_equal(dev.thickness, host.thickness)
+        np.testing.assert_array_equal(dev.depth[both], host.depth[both])
+        shown = both & (host.fluid[..., 3] > 0)  # the shaded normals are 0 where the fluid shows nothing
+        angle = np.degrees(np.arccos(np.clip(np.sum(dev.normals[shown] * host.normals[shown], -1), -1, 1)))
+        assert np.percentile(angle, 99) < 0.5, seed
+    for closer in (ss, launch, shader):
+        closer.close()

@@ -303,3 +303,27 @@ def test_ellipsoid_shapes_turn_into_view_space_as_numpy_did(ss):
     ss.launch(K.view_shapes, len(shapes), [wp.array(shapes, dtype=wp.mat33, device="cpu"),
                                            wp.mat33d(*rot.astype(np.float64).ravel()), out])
     np.testing.assert_array_equal(out.numpy(), want)
+
+
+def test_inputs_on_the_device_are_the_host_maps_as_tensors_that_later_views_leave_alone(ss, launch):
+    """``on_device`` gives each map as a torch tensor holding a copy of the device buffer: the same
+    values as the host arrays, sphere and ellipsoid splats alike, and untouched by the next view,
+    which reuses every buffer (a tensor viewing a buffer would change with it)."""
+    import torch
+
+    from pipeline.surface import particle_ellipsoids
+
+    rng = np.random.default_rng(6)
+    x = (rng.normal(size=(1200, 3)) * 0.05 + (0.0, 0.0, -0.6)).astype(np.float32)
+    p = DatasetConfig()
+    ell = particle_ellipsoids(x, R, p, launch)
+    cam, other = _camera(96), Camera(look_at((0.1, 0.1, 0.0), (0, 0, -0.6)), 40.0, 96, 96)
+    for kw in ({"filters": ("bilateral", "nrf")}, {"filters": ("bilateral",), "ellipsoids": ell}):
+        want = ss.inputs(x, R, cam, p, **kw)
+        got = ss.inputs(x, R, cam, p, on_device=True, **kw)
+        later = ss.inputs(x, R, other, p, on_device=True, **kw)
+        assert set(got) == set(want) and len(want) >= 6
+        for key, value in want.items():
+            assert isinstance(got[key], torch.Tensor) and got[key].shape == value.shape, key
+            np.testing.assert_array_equal(got[key].numpy(), value, err_msg=key)
+        assert not np.array_equal(later[next(iter(later))].numpy(), got[next(iter(got))].numpy())

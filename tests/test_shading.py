@@ -233,3 +233,28 @@ def test_the_gpu_way_of_returning_passes_gives_the_same_passes():
     for name in ("beauty", "fluid", "depth", "normals_view", "normals_world"):
         np.testing.assert_array_equal(getattr(passes[1], name), getattr(passes[0], name), err_msg=name)
     assert passes[0].beauty[..., 3].min() > 0
+
+
+def test_the_shader_reads_torch_tensors_as_it_reads_arrays():
+    """On a GPU the refined frame hands the shader torch tensors on the device (its normals and
+    thickness). Read where they lie (``wp.from_torch``), even as a strided view of a bigger tensor,
+    they must shade into the passes the same values as host arrays give."""
+    import torch
+
+    rng = np.random.default_rng(4)
+    n = rng.normal(size=(SIZE, SIZE, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[..., 2] = np.abs(n[..., 2])
+    depth = rng.uniform(0.5, 2.0, (SIZE, SIZE)).astype(np.float32)
+    thickness = rng.uniform(0.0, 0.2, (SIZE, SIZE)).astype(np.float32)
+    mask = (rng.random((SIZE, SIZE)) > 0.3).astype(np.float32)
+    bg = rng.random((SIZE, SIZE, 3)).astype(np.float32)
+    bgd = rng.uniform(1.0, 3.0, (SIZE, SIZE)).astype(np.float32)
+    shader = Shader("cpu")
+    want = shader.shade(n, depth, thickness, mask, bg, bgd, _camera(), RenderConfig())
+    both = torch.from_numpy(np.stack([thickness, depth], -1))  # the thickness as a strided view
+    got = shader.shade(torch.from_numpy(n.copy()), depth, both[..., 0], torch.from_numpy(mask), bg, bgd, _camera(),
+                       RenderConfig())
+    shader.close()
+    for name in ("beauty", "fluid", "depth", "normals_view", "normals_world"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)

@@ -16,6 +16,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
+from pipeline.device import torch_waits_for_warp
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
@@ -82,6 +83,12 @@ class ScreenSpace:
         already; on the CPU it is a view of the buffer, which the next frame overwrites."""
         out = a.numpy().reshape(shape)
         return out if a.device.is_cuda else out.copy()
+
+    def _take(self, a: wp.array, shape: tuple[int, ...], on_device: bool):
+        """The buffer's pixels as a host array (``_download``) or, ``on_device``, as a torch tensor
+        on the device holding a copy made there (queued on Warp's stream; ``inputs`` hands the
+        copies over to torch's once all are queued)."""
+        return wp.to_torch(wp.clone(a)).reshape(shape) if on_device else self._download(a, shape)
 
     # ---- kernels on device arrays ---------------------------------------------------------------
 
@@ -187,34 +194,39 @@ class ScreenSpace:
 
     def inputs(self, positions_world: np.ndarray, radius: float, camera: Camera, p: DatasetConfig,
                filters: tuple[str, ...] = FILTERS, timings: Timings | None = None,
-               ellipsoids: Ellipsoids | None = None) -> dict[str, np.ndarray]:
+               ellipsoids: Ellipsoids | None = None, on_device: bool = False) -> dict[str, np.ndarray]:
         """Splat, filter and differentiate one view: ``Z``, ``A``, ``thickness`` and per filter
         ``<f>.Z`` and ``<f>.N`` (H x W x 3).
 
         With ``ellipsoids`` the particles are drawn as those instead of spheres and every name
         takes an ``aniso`` prefix: ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N`` (the
-        normals of the unfiltered ellipsoid depth), ``aniso_<f>.Z`` and ``aniso_<f>.N``."""
+        normals of the unfiltered ellipsoid depth), ``aniso_<f>.Z`` and ``aniso_<f>.N``.
+        ``on_device``: torch tensors on the device instead of host arrays (nothing comes to the
+        host; on a GPU, for the refiner and the shader there)."""
         t = timings or Timings()
         shape = (camera.height, camera.width)
         aniso = ellipsoids is not None
         raw = "aniso." if aniso else ""
+        take = self._take
         with t("splat"):
             if aniso:
                 depth, mask, thickness, _ = self._splat_ellipsoids(ellipsoids, camera)
             else:
                 depth, mask, thickness = self._splat(positions_world, radius, camera)
-            out = {f"{raw}Z": self._download(depth, shape), f"{raw}A": self._download(mask, shape),
-                   f"{raw}thickness": self._download(thickness, shape)}
+            out = {f"{raw}Z": take(depth, shape, on_device), f"{raw}A": take(mask, shape, on_device),
+                   f"{raw}thickness": take(thickness, shape, on_device)}
         if aniso:
             with t("normals"):
-                out["aniso.N"] = self._download(self._normals(depth, camera), (*shape, 3))
+                out["aniso.N"] = take(self._normals(depth, camera), (*shape, 3), on_device)
         for name in filters:
             with t(name):
                 d = self._filter(name, depth, camera, radius, p)
             key = f"aniso_{name}" if aniso else name
             with t("normals"):
-                out[f"{key}.Z"] = self._download(d, shape)
-                out[f"{key}.N"] = self._download(self._normals(d, camera), (*shape, 3))
+                out[f"{key}.Z"] = take(d, shape, on_device)
+                out[f"{key}.N"] = take(self._normals(d, camera), (*shape, 3), on_device)
+        if on_device:
+            torch_waits_for_warp(self.device)
         return out
 
     def motion(self, positions_world: np.ndarray, particle_motion: np.ndarray, radius: float, camera: Camera,

@@ -10,8 +10,10 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import RenderConfig
+from pipeline.device import warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.shading import kernels as K
+from pipeline.vectors import is_tensor
 
 
 def fresnel_f0(ior: float) -> float:
@@ -52,9 +54,15 @@ class Shader:
         self.use_env_map = int(environment is not None)
         self.env = wp.array(np.ascontiguousarray(env, np.float32), dtype=wp.vec3, device=device)
 
-    def _device_view(self, a: np.ndarray, dtype=float) -> wp.array:
+    def _device_view(self, a, dtype=float) -> wp.array:
         """An image as a flat Warp array: on the CPU a view of the NumPy memory (no copy, no
-        allocation), on a GPU an upload."""
+        allocation), on a GPU an upload; a torch tensor on the device is read where it lies."""
+        if is_tensor(a):
+            import torch
+
+            a = a.to(device=self.device, dtype=torch.float32).contiguous()
+            return wp.from_torch(a.reshape(-1, 3) if dtype is wp.vec3 else a.reshape(-1),
+                                 dtype=wp.float32 if dtype is float else dtype)
         a = np.ascontiguousarray(a, np.float32)
         a = a.reshape(-1, 3) if dtype is wp.vec3 else a.ravel()
         return wp.array(a, dtype=dtype, device=self.device, copy=not self._cpu)
@@ -87,6 +95,7 @@ class Shader:
         ``background`` (then only the environment)."""
         h, w = depth.shape
         arr = self._device_view
+        warp_waits_for_torch(self.device)  # what torch made (the refiner's normals) is done before it is read
         light_world = np.asarray(p.light_dir, np.float64)
         light_world /= np.linalg.norm(light_world)
         light_view = camera.view[:3, :3] @ light_world
