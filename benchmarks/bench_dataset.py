@@ -45,6 +45,13 @@ def _camera_for(x: np.ndarray, size: int) -> Camera:
 
 
 def _pbf_frame(n: int) -> tuple[np.ndarray, float]:
+    """Positions and radius of a PBF dam break of about ``n`` particles, half a second in."""
+    x, _, radius = _pbf_state(n)
+    return x, radius
+
+
+def _pbf_state(n: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """``_pbf_frame`` with the particles' velocities (m/s)."""
     block = (0.5, 0.7, 0.8)
     radius = 0.5 * (np.prod(block) / n) ** (1 / 3)
     cams = from_dict(Cameras, {"static": {"eye": [0, 0, 3], "target": [0, 0, 0]}, "orbit": {"target": [0, 0, 0]}})
@@ -53,9 +60,9 @@ def _pbf_frame(n: int) -> tuple[np.ndarray, float]:
     solver = PBFSolver(scene, SimulateConfig(particle_radius=float(radius)), "cpu", seed=0)
     for f in range(1, 16):  # half a second: the column is collapsing
         solver.advance_frame(f)
-    x, _ = solver.state()
+    x, v = solver.state()
     solver.close()
-    return x, float(radius)
+    return x, v, float(radius)
 
 
 def main() -> None:

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Issue 13's GPU measurements in one run on the GPU machine (the `device` tool), about 8 minutes:
 # the cuda-marked tests, the simulator against its own stage at 50k particles, the dataset and
-# render benchmarks on CUDA, the dataset stage's views/s at 512, and Taichi side by side on the same GPU when its wheel came along.
+# render benchmarks on CUDA, the dataset stage's views/s at 512, the render stage's frames/s at
+# 1024, and Taichi side by side on the same GPU when its wheel came along.
 # Each step writes OUT/<step>.txt and prints its exit status and last line, so one failing step
 # costs only itself. After `source .gpu/py/boot.sh` (../shared/gpu/README.md), from the repo root:
 #
@@ -31,12 +32,13 @@ step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output
 # the limits add up to under the device tool's 10 minutes a command; the cuda tests come first, so
 # their compilation of every kernel module for the GPU is cached for the later steps
 step gpu 10 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
-step cuda_tests 130 "$PY" -m pytest -q -m cuda -p no:cacheprovider tests
+step cuda_tests 120 "$PY" -m pytest -q -m cuda -p no:cacheprovider tests
 step sim 45 "$PY" benchmarks/bench_sim.py --device "$DEVICE" --particles 50000 --steps 400
 step sim_stage 75 "$PY" benchmarks/bench_sim_stage.py --particle-radius 0.00888
-step dataset 80 "$PY" benchmarks/bench_dataset.py --device "$DEVICE"
+step dataset 70 "$PY" benchmarks/bench_dataset.py --device "$DEVICE"
 step dataset_stage 60 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frames 16
-step render 80 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 512 1024 --splat ellipsoid --repeat 10
+step render 60 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 1024 --splat ellipsoid --repeat 10
+step render_stage 50 "$PY" benchmarks/bench_render_stage.py --device "$DEVICE" --size 1024 --frames 30
 if "$PY" -c "import taichi" 2>/dev/null; then
     step taichi 90 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
 else
