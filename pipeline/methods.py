@@ -28,7 +28,7 @@ from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
-from pipeline.vectors import host, is_tensor, length
+from pipeline.vectors import host, is_tensor, length, xp
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
@@ -288,20 +288,29 @@ def motion_pass(fluid_alpha: np.ndarray, fluid_motion: np.ndarray, covered: np.n
                 background_motion: np.ndarray | None = None) -> np.ndarray:
     """H x W x 4 motion of what each pixel shows: the particles' motion where the fluid is visible
     (a visible pixel no sphere covered, e.g. at an ellipsoid's or the mesh's rim, takes a covered
-    neighbour's, ring by ring), the camera-induced motion of the background elsewhere (or 0)."""
+    neighbour's, ring by ring), the camera-induced motion of the background elsewhere (or 0).
+
+    ``fluid_motion`` and ``covered`` may be torch tensors on a GPU (``ScreenSpace.motion`` with
+    ``on_device``): the pass is then made there, the same values, and returned as a tensor."""
+    x = xp(fluid_motion)
+    if is_tensor(fluid_motion):
+        fluid_alpha, covered = (torch.as_tensor(a, device=fluid_motion.device) for a in (fluid_alpha, covered))
+        motion = (torch.zeros_like(fluid_motion) if background_motion is None
+                  else torch.as_tensor(background_motion, device=fluid_motion.device).float().clone())
+    else:
+        motion = (np.zeros(fluid_motion.shape, np.float32) if background_motion is None
+                  else np.array(background_motion, np.float32, order="C"))
     visible = fluid_alpha > 0
-    motion = (np.zeros(fluid_motion.shape, np.float32) if background_motion is None
-              else np.array(background_motion, np.float32, order="C"))
     if not visible.any():
         return motion
-    holes = np.argwhere(visible & ~covered)
+    holes = x.argwhere(visible & ~covered)
     if len(holes) and covered.any():
-        fluid_motion, covered = fluid_motion.copy(), covered.copy()
+        fluid_motion, covered = ((a.clone() if is_tensor(a) else a.copy()) for a in (fluid_motion, covered))
         h, w = covered.shape
         for _ in range(RIM_FILL_STEPS):  # grow the covered pixels into the holes, one ring per step
-            filled = np.zeros(len(holes), bool)
+            filled = x.zeros_like(holes[:, 0], dtype=x.bool)
             for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
-                r, c = np.clip(holes[:, 0] + dr, 0, h - 1), np.clip(holes[:, 1] + dc, 0, w - 1)
+                r, c = x.clip(holes[:, 0] + dr, 0, h - 1), x.clip(holes[:, 1] + dc, 0, w - 1)
                 take = ~filled & covered[r, c]
                 fluid_motion[holes[take, 0], holes[take, 1]] = fluid_motion[r[take], c[take]]
                 filled |= take
@@ -309,6 +318,8 @@ def motion_pass(fluid_alpha: np.ndarray, fluid_motion: np.ndarray, covered: np.n
             holes = holes[~filled]
             if not len(holes) or not filled.any():
                 break
+    if is_tensor(motion):
+        return torch.where(visible[..., None], fluid_motion, motion)
     # each pixel's four floats copied as one 16-byte value: the same bits, 0.5 ms instead of 15 at
     # 1024 x 1024 for a boolean-indexed copy of four floats a pixel
     np.copyto(_as_pixels(motion), _as_pixels(np.ascontiguousarray(fluid_motion, np.float32)), where=visible)

@@ -38,6 +38,7 @@ from pipeline.screen.motion import camera_motion, particle_motion
 from pipeline.shading import Shader, load_environment, tonemap
 from pipeline.shading.background import BackgroundRenderer, Surroundings
 from pipeline.timing import Timings
+from pipeline.vectors import host
 from pipeline.writer import BackgroundWriter
 
 log = logging.getLogger("deep_ssfr")
@@ -98,10 +99,11 @@ class SequenceRenderer:
         with self.timings("motion"):
             per_particle = particle_motion(positions, velocities, camera, fps, prev, nxt)
             visible = frame.fluid[..., 3] > 0
+            # on a GPU the particles' motion and the rim fill stay there; one download for the EXR
             fluid_motion, covered = self.ss.motion(positions, per_particle, radius, camera,
-                                                   np.where(visible, frame.depth, 0.0))
-            frame.motion = motion_pass(frame.fluid[..., 3], fluid_motion, covered,
-                                       camera_motion(frame.depth, camera, prev, nxt))
+                                                   np.where(visible, frame.depth, 0.0), on_device=not self.launch.cpu)
+            frame.motion = host(motion_pass(frame.fluid[..., 3], fluid_motion, covered,
+                                            camera_motion(frame.depth, camera, prev, nxt)))
 
     def write(self, frame: int, camera: Camera, fps: float, shaded: dict[str, RenderedFrame],
               timings: Timings) -> None:

@@ -245,3 +245,35 @@ def test_motion_pass_fills_uncovered_rims_and_keeps_the_background():
     out = motion_pass(visible, fluid, covered, background)
     np.testing.assert_array_equal(out[visible > 0], np.broadcast_to([1.0, -2.0, 3.0, -4.0], ((visible > 0).sum(), 4)))
     np.testing.assert_array_equal(out[visible == 0], 0.5)
+
+
+def test_the_motion_pass_on_the_device_is_the_host_pass(ss):
+    """On a GPU the motion splat's maps stay torch tensors and the rim fill runs on them. On the
+    CPU's tensors it must give the host pass bit for bit: rims several rings wide, holes at the
+    image border (where the neighbours are clipped), fluid out of reach of any covered pixel, with
+    and without the camera's motion behind."""
+    import torch
+
+    from pipeline.methods import motion_pass
+
+    rng = np.random.default_rng(11)
+    cam = _camera()
+    x = (rng.random((400, 3)) * [0.6, 0.6, 0.3] + [0.2, 0.0, 0.3]).astype(np.float32)
+    per_particle = rng.normal(size=(400, 4)).astype(np.float32)
+    want_motion, want_covered = ss.motion(x, per_particle, RADIUS, cam)
+    got_motion, got_covered = ss.motion(x, per_particle, RADIUS, cam, on_device=True)
+    assert isinstance(got_motion, torch.Tensor) and isinstance(got_covered, torch.Tensor)
+    np.testing.assert_array_equal(got_motion.numpy(), want_motion)
+    np.testing.assert_array_equal(got_covered.numpy(), want_covered)
+    from scipy.ndimage import binary_dilation
+
+    visible = binary_dilation(want_covered, iterations=5).astype(np.float32)
+    visible[:, :3] = 1.0  # a strip at the border, partly out of reach
+    visible[40:44, 40:44] = 1.0
+    assert (visible.astype(bool) & ~want_covered).sum() > 200
+    for background in (None, rng.normal(size=want_motion.shape).astype(np.float32)):
+        want = motion_pass(visible, want_motion, want_covered, background)
+        got = motion_pass(visible, got_motion, got_covered, background)
+        assert isinstance(got, torch.Tensor)
+        np.testing.assert_array_equal(got.numpy(), want)
+    np.testing.assert_array_equal(got_motion.numpy(), want_motion)  # the inputs are left as they were

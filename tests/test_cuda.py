@@ -78,14 +78,17 @@ def test_pipelined_frames_on_the_gpu_arrive_in_order(tmp_path):
     solver.close()
 
 
-def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch):
+@pytest.mark.parametrize("method", ["nrf", "refined"])
+def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch, method):
+    """The render stage on the GPU (the refined frame and its motion pass kept on the device there)
+    writes the normals and motion vectors the CPU does, to the rounding of two simulations."""
     from tests.conftest import write_config
 
     scene = {"name": "tiny_dam", "domain_lo": [0, 0, 0], "domain_hi": [0.6, 0.5, 0.3],
              "fluid": [{"shape": "box", "lo": [0, 0, 0], "hi": [0.2, 0.3, 0.3]}], "cameras": CAMERAS}
     config = write_config(tmp_path, {"scenes": ["tiny_dam"], "seed": 3,
                                      "simulate": {"particle_radius": 0.0125, "frames": 2},
-                                     "render": {"width": 64, "height": 64, "method": "nrf", "comparison": False}},
+                                     "render": {"width": 64, "height": 64, "method": method, "comparison": False}},
                           {"tiny_dam": scene})
     frames = {}
     for device in ("cuda", "cpu"):
@@ -99,6 +102,10 @@ def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch)
     n_cpu, n_gpu = stack(ch["cpu"], "ViewLayer.ViewNormal.")[fluid], stack(ch["cuda"], "ViewLayer.ViewNormal.")[fluid]
     angle = np.degrees(np.arccos(np.clip(np.sum(n_cpu * n_gpu, -1), -1, 1)))
     assert np.median(angle) < 1.0
+    shown = (ch["cpu"]["ViewLayer.Fluid.A"] > 0) & (ch["cuda"]["ViewLayer.Fluid.A"] > 0)
+    v_cpu, v_gpu = (stack(ch[d], "ViewLayer.Vector.", "XYZW")[shown] for d in ("cpu", "cuda"))
+    assert np.abs(v_cpu).max() > 0.1
+    assert np.median(np.abs(v_gpu - v_cpu)) < 0.05
 
 
 def test_dataset_stage_on_the_gpu_matches_the_cpu(tmp_path, monkeypatch):

@@ -230,7 +230,7 @@ class ScreenSpace:
         return out
 
     def motion(self, positions_world: np.ndarray, particle_motion: np.ndarray, radius: float, camera: Camera,
-               depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+               depth: np.ndarray | None = None, on_device: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Per-pixel screen motion (H x W x 4) of the front-most particles, from each particle's
         ``particle_motion`` (N x 4, e.g. ``pipeline.screen.motion.particle_motion``), and the
         H x W mask of pixels it reached.
@@ -238,7 +238,8 @@ class ScreenSpace:
         Particles are spheres of ``radius``; those whose front surface lies within a radius of the
         nearest count as front-most. ``depth`` (H x W view depth of the surface the frame shows,
         0 or inf where none) replaces that nearest depth, and saves a splat: particles within two
-        radii of it count, a margin for filtered depths."""
+        radii of it count, a margin for filtered depths. ``on_device``: both as torch tensors left
+        on the device (``inputs``)."""
         w, h = camera.width, camera.height
         if depth is None:
             reference, band = self._splat(positions_world, radius, camera)[0], radius
@@ -256,7 +257,10 @@ class ScreenSpace:
                                                    band, total, weight] for r0, r1 in row_bands(self.launch, h)])
         out = self._buffer("motion", w * h, wp.vec4)
         self.launch(K.finish_motion, w * h, [total, weight, out])
-        return self._download(out, (h, w, 4)), self._download(weight, (h, w)) > 0
+        motion, covered = self._take(out, (h, w, 4), on_device), self._take(weight, (h, w), on_device) > 0
+        if on_device:
+            torch_waits_for_warp(self.device)
+        return motion, covered
 
     def splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> SplatResult:
         """Nearest sphere-surface depth, fluid mask and summed chord thickness per pixel."""
