@@ -258,3 +258,30 @@ def test_the_shader_reads_torch_tensors_as_it_reads_arrays():
     shader.close()
     for name in ("beauty", "fluid", "depth", "normals_view", "normals_world"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+def test_a_silhouette_wider_than_the_splat_is_shaded_to_its_edge():
+    """A refined or mesh silhouette reaches past the particles' splat, where the splat's thickness
+    is 0 and the shader would show nothing. ``shade_frame`` gives each such pixel its nearest
+    covered pixel's thickness: the fluid shows over the method's whole mask, the splat's own
+    pixels keep their thickness, pixels off the mask stay empty."""
+    from pipeline.methods import shade_frame, shading_thickness
+
+    yy, xx = np.mgrid[:SIZE, :SIZE]
+    r = np.hypot(yy - C, xx - C)
+    thickness = np.where(r < 6, 0.05 + 0.01 * (6 - r), 0.0).astype(np.float32)  # the splat
+    mask = (r < 10).astype(np.float32)  # the method's wider silhouette
+    n, depth, _, _ = _buffers()
+    src = {"normals": n, "depth": depth, "thickness": thickness, "mask": mask}
+    bg = np.full((SIZE, SIZE, 3), 0.5, np.float32)
+    shader = Shader("cpu")
+    frame = shade_frame(src, bg, np.zeros((SIZE, SIZE), np.float32), _camera(), RenderConfig(), shader)
+    bare = shader.shade(n, depth, thickness, mask, bg, np.zeros((SIZE, SIZE), np.float32), _camera(), RenderConfig())
+    shader.close()
+    rim = (r >= 6) & (r < 10)
+    assert (bare.fluid[rim, 3] == 0).all()  # the splat's thickness alone leaves the rim out
+    assert (frame.fluid[mask > 0, 3] > 0).all() and (frame.fluid[mask == 0, 3] == 0).all()
+    np.testing.assert_array_equal(frame.thickness[r < 6], thickness[r < 6])
+    assert (frame.thickness[rim] > 0).all() and (frame.thickness[rim] <= 0.05 + 0.01 * 1.0 + 1e-6).all()
+    np.testing.assert_array_equal(frame.thickness[mask == 0], 0.0)
+    assert shading_thickness(thickness, thickness > 0) is thickness  # nothing to fill: the same map
