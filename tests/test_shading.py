@@ -210,11 +210,10 @@ def test_run_length_encoded_hdr_matches_openimageio(tmp_path):
     assert (np.abs(expected - rgb) <= rgb.max(-1, keepdims=True) / 64).all(), "RGBE keeps 8 bits of the largest"
 
 
-def test_the_gpu_way_of_returning_passes_gives_the_same_passes():
-    """On a GPU the shader writes device arrays and copies each into its host pass (``_result``);
-    run that way on the CPU (a device array, then the copy) it must give every pass as the direct
-    write into the host arrays does."""
-    rng = np.random.default_rng(3)
+def _random_buffers(seed: int):
+    """Random unit normals facing the camera, depth, thickness, a mask with holes, a background
+    and its depth: every branch of the shading kernel in one frame."""
+    rng = np.random.default_rng(seed)
     n = rng.normal(size=(SIZE, SIZE, 3)).astype(np.float32)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     n[..., 2] = np.abs(n[..., 2])
@@ -223,6 +222,14 @@ def test_the_gpu_way_of_returning_passes_gives_the_same_passes():
     mask = (rng.random((SIZE, SIZE)) > 0.3).astype(np.float32)
     bg = rng.random((SIZE, SIZE, 3)).astype(np.float32)
     bgd = rng.uniform(1.0, 3.0, (SIZE, SIZE)).astype(np.float32)
+    return n, depth, thickness, mask, bg, bgd
+
+
+def test_the_gpu_way_of_returning_passes_gives_the_same_passes():
+    """On a GPU the shader writes device arrays and copies each into its host pass (``_result``);
+    run that way on the CPU (a device array, then the copy) it must give every pass as the direct
+    write into the host arrays does."""
+    n, depth, thickness, mask, bg, bgd = _random_buffers(3)
     passes = []
     for device_way in (False, True):
         shader = Shader("cpu")
@@ -241,15 +248,7 @@ def test_the_shader_reads_torch_tensors_as_it_reads_arrays():
     they must shade into the passes the same values as host arrays give."""
     import torch
 
-    rng = np.random.default_rng(4)
-    n = rng.normal(size=(SIZE, SIZE, 3)).astype(np.float32)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    n[..., 2] = np.abs(n[..., 2])
-    depth = rng.uniform(0.5, 2.0, (SIZE, SIZE)).astype(np.float32)
-    thickness = rng.uniform(0.0, 0.2, (SIZE, SIZE)).astype(np.float32)
-    mask = (rng.random((SIZE, SIZE)) > 0.3).astype(np.float32)
-    bg = rng.random((SIZE, SIZE, 3)).astype(np.float32)
-    bgd = rng.uniform(1.0, 3.0, (SIZE, SIZE)).astype(np.float32)
+    n, depth, thickness, mask, bg, bgd = _random_buffers(4)
     shader = Shader("cpu")
     want = shader.shade(n, depth, thickness, mask, bg, bgd, _camera(), RenderConfig())
     both = torch.from_numpy(np.stack([thickness, depth], -1))  # the thickness as a strided view
