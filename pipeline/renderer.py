@@ -83,7 +83,7 @@ class SequenceRenderer:
                 bg, bg_depth = self.background.render(camera)
             else:  # nothing behind the fluid: it refracts the environment alone
                 bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
-            bg = self.shader.fill_sky(bg, bg_depth, camera, p)
+            bg = self.shader.fill_sky(bg, bg_depth, camera, p, on_device=not self.launch.cpu)
         shaded, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
         for method in self.methods:
             t = self.timings if method == p.method else Timings()

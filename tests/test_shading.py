@@ -284,3 +284,24 @@ def test_a_silhouette_wider_than_the_splat_is_shaded_to_its_edge():
     assert (frame.thickness[rim] > 0).all() and (frame.thickness[rim] <= 0.05 + 0.01 * 1.0 + 1e-6).all()
     np.testing.assert_array_equal(frame.thickness[mask == 0], 0.0)
     assert shading_thickness(thickness, thickness > 0) is thickness  # nothing to fill: the same map
+
+
+def test_the_sky_left_on_the_device_is_the_host_sky_and_shades_alike():
+    """On a GPU the render loop keeps the filled background on the device for every method of the
+    frame (``fill_sky(on_device=True)``): the same pixels as the host background, and the same
+    passes shaded over it."""
+    import torch
+
+    n, depth, thickness, mask, bg, bgd = _random_buffers(5)
+    bgd[:, : SIZE // 2] = 0.0  # half the frame has no rasterised background: the sky shows there
+    shader = Shader("cpu", environment=_longitude_map())
+    host = shader.fill_sky(bg, bgd, _camera(), RenderConfig())
+    dev = shader.fill_sky(bg, bgd, _camera(), RenderConfig(), on_device=True)
+    assert isinstance(dev, torch.Tensor) and dev.shape == host.shape
+    np.testing.assert_array_equal(dev.numpy(), host)
+    assert not np.array_equal(host[:, : SIZE // 2], bg[:, : SIZE // 2])
+    want = shader.shade(n, depth, thickness, mask, host, bgd, _camera(), RenderConfig())
+    got = shader.shade(n, depth, thickness, mask, dev, bgd, _camera(), RenderConfig())
+    shader.close()
+    for name in ("beauty", "fluid", "depth", "normals_view", "normals_world"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)

@@ -10,7 +10,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import RenderConfig
-from pipeline.device import warp_waits_for_torch
+from pipeline.device import torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.shading import kernels as K
 from pipeline.vectors import is_tensor
@@ -118,8 +118,10 @@ class Shader:
         return out
 
     def fill_sky(self, background: np.ndarray, background_depth: np.ndarray, camera: Camera,
-                 p: RenderConfig) -> np.ndarray:
-        """The background with the environment filled in where nothing was rasterised."""
+                 p: RenderConfig, on_device: bool = False) -> np.ndarray:
+        """The background with the environment filled in where nothing was rasterised; with
+        ``on_device`` a torch tensor left on the device, which ``shade`` reads in place (on a GPU a
+        frame's methods then shade over it without its download and one upload each)."""
         h, w = background_depth.shape
         sun = np.asarray(p.light_dir, np.float64)
         sun /= np.linalg.norm(sun)
@@ -130,6 +132,9 @@ class Shader:
             self._device_view(background, wp.vec3), self._device_view(background_depth),
             self.env, self.use_env_map, wp.vec2(*environment_rotation(p)), p.environment_strength,
             wp.mat33(*rot.ravel()), wp.vec3(*sun.astype(np.float32)), w, h, camera.focal_px, out])
+        if on_device:
+            torch_waits_for_warp(self.device)
+            return wp.to_torch(out).reshape(h, w, 3)
         return self._result(out, sky)
 
     def close(self) -> None:
