@@ -2,24 +2,50 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
 
+SYNC_ENV = "DEEP_SSFR_SYNC_TIMINGS"
+"""Set to 1 to make every timer wait for the GPU at its start and end (``Timings(sync=True)``)."""
+
+
+def synchronize() -> None:
+    """Wait for the work queued on every CUDA device, Warp's and torch's (nothing without one)."""
+    import torch
+
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+        import warp as wp
+
+        if wp.is_cuda_available():
+            wp.synchronize()
+
 
 class Timings:
-    """Accumulates wall time per named step; ``with timings("splat"): ...``."""
+    """Accumulates wall time per named step; ``with timings("splat"): ...``.
 
-    def __init__(self) -> None:
+    On a GPU kernels and the network run behind the host, so a step's wall time holds whatever
+    finished during it. ``sync`` (default: the ``DEEP_SSFR_SYNC_TIMINGS`` environment variable)
+    waits for the GPU at each timer's start and end: every step then holds its own work, at the
+    cost of the overlap (for breakdowns, not for frame rates)."""
+
+    def __init__(self, sync: bool | None = None) -> None:
         self.total: dict[str, float] = defaultdict(float)
         self.count: dict[str, int] = defaultdict(int)
+        self.sync = os.environ.get(SYNC_ENV, "") == "1" if sync is None else sync
 
     @contextmanager
     def __call__(self, name: str):
+        if self.sync:
+            synchronize()
         start = time.perf_counter()
         try:
             yield
         finally:
+            if self.sync:
+                synchronize()
             self.total[name] += time.perf_counter() - start
             self.count[name] += 1
 
