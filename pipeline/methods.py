@@ -157,8 +157,7 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
 
 def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``depth`` (0 = empty) on ``mask``, each masked pixel without a depth of its own taking its
-    nearest depth pixel's (refined silhouettes reach past the splat); 0 off the mask. Any map whose
-    0 means empty extends alike (the thickness: ``shading_thickness``)."""
+    nearest depth pixel's (refined silhouettes reach past the splat); 0 off the mask."""
     have = depth > 0
     if not have.any() or not mask.any():
         return np.zeros_like(depth)
@@ -283,17 +282,15 @@ def shade_frame(source: dict[str, np.ndarray], background: np.ndarray, backgroun
 
 def shading_thickness(thickness, mask):
     """The thickness the shader absorbs over: the splat's, and at pixels of the method's ``mask``
-    that no particle covered (a refined or mesh silhouette reaching past the splat) its nearest
-    covered pixel's, as the depth is there (``extend_depth``). The shader shows no fluid where the
-    thickness is 0: without this the image cut every such silhouette back to the splat's while the
-    Mask pass kept it (4-13% of the refined mask in the demo's frames). ``thickness`` comes back
-    as it was (a tensor stays one) when there is nothing to fill."""
-    t, inside = host(thickness), host(mask) > 0
-    have = t > 0
-    holes = inside & ~have
-    if not holes.any() or not have.any():
-        return thickness
-    return np.where(holes, extend_depth(t, inside), t).astype(np.float32)
+    that no particle covered (a refined or mesh silhouette reaching past the splat) a covered
+    neighbour's, ring by ring (``fill_rims``). The shader shows no fluid where the thickness is 0:
+    without this the image cut every such silhouette back to the splat's while the Mask pass kept
+    it (4-13% of the refined mask in the demo's frames). A tensor stays one, on its device, and
+    comes back as it was when there is nothing to fill."""
+    inside = host(mask) > 0
+    if is_tensor(thickness):
+        inside = torch.as_tensor(inside, device=thickness.device)
+    return fill_rims(thickness, thickness > 0, inside, steps=None)
 
 
 RIM_FILL_STEPS = 16
@@ -301,15 +298,43 @@ RIM_FILL_STEPS = 16
 and still take its motion (beyond: 0)."""
 
 
+def fill_rims(values, covered, wanted, steps: int | None = RIM_FILL_STEPS):
+    """``values`` (H x W [x k]) with every ``wanted`` pixel that ``covered`` misses given a covered
+    8-neighbour's value, ring by ring outwards from the covered pixels (the first covered neighbour
+    in a fixed order), for at most ``steps`` rings (None: until no more can be reached); pixels
+    further out keep their own. numpy arrays or torch tensors, the same values either way; a new
+    array, or ``values`` itself when there is nothing to fill."""
+    x = xp(values)
+    holes = x.argwhere(wanted & ~covered)
+    if not len(holes) or not covered.any():
+        return values
+    values, covered = ((a.clone() if is_tensor(a) else a.copy()) for a in (values, covered))
+    h, w = covered.shape
+    ring = 0
+    while steps is None or ring < steps:  # grow the covered pixels into the holes, one ring per step
+        ring += 1
+        filled = x.zeros_like(holes[:, 0], dtype=x.bool)
+        for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+            r, c = x.clip(holes[:, 0] + dr, 0, h - 1), x.clip(holes[:, 1] + dc, 0, w - 1)
+            take = ~filled & covered[r, c]
+            values[holes[take, 0], holes[take, 1]] = values[r[take], c[take]]
+            filled |= take
+        covered[holes[filled, 0], holes[filled, 1]] = True
+        holes = holes[~filled]
+        if not len(holes) or not filled.any():
+            break
+    return values
+
+
 def motion_pass(fluid_alpha: np.ndarray, fluid_motion: np.ndarray, covered: np.ndarray,
                 background_motion: np.ndarray | None = None) -> np.ndarray:
     """H x W x 4 motion of what each pixel shows: the particles' motion where the fluid is visible
     (a visible pixel no sphere covered, e.g. at an ellipsoid's or the mesh's rim, takes a covered
-    neighbour's, ring by ring), the camera-induced motion of the background elsewhere (or 0).
+    neighbour's, ring by ring: ``fill_rims``), the camera-induced motion of the background elsewhere
+    (or 0).
 
     ``fluid_motion`` and ``covered`` may be torch tensors on a GPU (``ScreenSpace.motion`` with
     ``on_device``): the pass is then made there, the same values, and returned as a tensor."""
-    x = xp(fluid_motion)
     if is_tensor(fluid_motion):
         fluid_alpha, covered = (torch.as_tensor(a, device=fluid_motion.device) for a in (fluid_alpha, covered))
         motion = (torch.zeros_like(fluid_motion) if background_motion is None
@@ -320,21 +345,7 @@ def motion_pass(fluid_alpha: np.ndarray, fluid_motion: np.ndarray, covered: np.n
     visible = fluid_alpha > 0
     if not visible.any():
         return motion
-    holes = x.argwhere(visible & ~covered)
-    if len(holes) and covered.any():
-        fluid_motion, covered = ((a.clone() if is_tensor(a) else a.copy()) for a in (fluid_motion, covered))
-        h, w = covered.shape
-        for _ in range(RIM_FILL_STEPS):  # grow the covered pixels into the holes, one ring per step
-            filled = x.zeros_like(holes[:, 0], dtype=x.bool)
-            for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
-                r, c = x.clip(holes[:, 0] + dr, 0, h - 1), x.clip(holes[:, 1] + dc, 0, w - 1)
-                take = ~filled & covered[r, c]
-                fluid_motion[holes[take, 0], holes[take, 1]] = fluid_motion[r[take], c[take]]
-                filled |= take
-            covered[holes[filled, 0], holes[filled, 1]] = True
-            holes = holes[~filled]
-            if not len(holes) or not filled.any():
-                break
+    fluid_motion = fill_rims(fluid_motion, covered, visible)
     if is_tensor(motion):
         return torch.where(visible[..., None], fluid_motion, motion)
     # each pixel's four floats copied as one 16-byte value: the same bits, 0.5 ms instead of 15 at

@@ -261,9 +261,12 @@ def test_the_shader_reads_torch_tensors_as_it_reads_arrays():
 
 def test_a_silhouette_wider_than_the_splat_is_shaded_to_its_edge():
     """A refined or mesh silhouette reaches past the particles' splat, where the splat's thickness
-    is 0 and the shader would show nothing. ``shade_frame`` gives each such pixel its nearest
-    covered pixel's thickness: the fluid shows over the method's whole mask, the splat's own
-    pixels keep their thickness, pixels off the mask stay empty."""
+    is 0 and the shader would show nothing. ``shade_frame`` gives each such pixel a covered
+    neighbour's thickness, ring by ring: the fluid shows over the method's whole mask, the splat's
+    own pixels keep their thickness, pixels off the mask stay empty; a tensor (the GPU's way) gets
+    the same thickness, as a tensor."""
+    import torch
+
     from pipeline.methods import shade_frame, shading_thickness
 
     yy, xx = np.mgrid[:SIZE, :SIZE]
@@ -284,6 +287,9 @@ def test_a_silhouette_wider_than_the_splat_is_shaded_to_its_edge():
     assert (frame.thickness[rim] > 0).all() and (frame.thickness[rim] <= 0.05 + 0.01 * 1.0 + 1e-6).all()
     np.testing.assert_array_equal(frame.thickness[mask == 0], 0.0)
     assert shading_thickness(thickness, thickness > 0) is thickness  # nothing to fill: the same map
+    on_device = shading_thickness(torch.from_numpy(thickness), mask)
+    assert isinstance(on_device, torch.Tensor)
+    np.testing.assert_array_equal(on_device.numpy(), frame.thickness)
 
 
 def test_the_sky_left_on_the_device_is_the_host_sky_and_shades_alike():
