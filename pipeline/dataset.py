@@ -26,7 +26,7 @@ from tqdm import tqdm
 from pipeline.cache import atomic_path
 from pipeline.camera import Camera, camera_for_frame, random_view
 from pipeline.config import DatasetConfig, SceneConfig
-from pipeline.executor import cluster_cpus, run_tasks, shards
+from pipeline.executor import cluster_slots, run_tasks, shards
 from pipeline.exr import camera_attributes, read_exr, read_exr_header, write_exr
 from pipeline.frames import frame_name
 from pipeline.parallel import Launcher, init_warp
@@ -82,13 +82,13 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
     """Write the views of every frame not yet written (a killed run resumes); returns the timings.
 
     ``load(frame)`` gives a frame's positions; ``device`` is a Warp device. With ``executor='ray'``
-    the frames are cut into one shard per CPU of the cluster, each built by a Ray task; ``subset``
+    the frames are cut into one shard per CPU (or GPU) of the cluster, each built by a Ray task; ``subset``
     (positions in ``frames``) is what one shard builds."""
     folder = Path(folder)
     if executor != "local":
         shard_of = functools.partial(build_dataset, folder, scene, p, frames, load, radius, device)
-        done = run_tasks(lambda sub: shard_of(subset=sub), shards(range(len(frames)), cluster_cpus(executor)),
-                         executor, address)
+        done = run_tasks(lambda sub: shard_of(subset=sub), shards(range(len(frames)), cluster_slots(executor, device)),
+                         executor, address, device)
         timings = Timings()
         for t in done:
             timings.merge(t)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from pipeline.camera import Camera
 from pipeline.config import Config, RenderConfig
 from pipeline.device import warp_device
-from pipeline.executor import cluster_cpus, run_tasks, shards
+from pipeline.executor import cluster_slots, run_tasks, shards
 from pipeline.frames import frame_name, spread
 from pipeline.media import contact_sheet, label, write_png, write_video
 from pipeline.methods import (
@@ -194,7 +194,7 @@ def render_sequence(folder: Path, name: str, around: Surroundings, config: Confi
                     camera_at: Callable[[int], Camera], fps: float | None = None,
                     metaball=None) -> tuple[list[str], Timings]:
     """Render a sequence into ``folder`` here, or with ``config.executor='ray'`` as one shard of
-    frames per CPU of the Ray cluster (each task its own renderer; the videos are made here once
+    frames per CPU (or GPU) of the Ray cluster (each task its own renderer; the videos are made here once
     all frames are back). Returns the sequence's files and the timings."""
     def shard(subset: list[int] | None) -> tuple[list[str], Timings]:
         with SequenceRenderer(folder, name, around, config, device, refiner, metaball) as renderer:
@@ -204,7 +204,7 @@ def render_sequence(folder: Path, name: str, around: Surroundings, config: Confi
     if config.executor == "local":
         return shard(None)
     timings = Timings()
-    parts = shards(list(range(len(frames))), cluster_cpus(config.executor))
-    for _, t in run_tasks(shard, parts, config.executor, config.ray_address):
+    parts = shards(list(range(len(frames))), cluster_slots(config.executor, device))
+    for _, t in run_tasks(shard, parts, config.executor, config.ray_address, device):
         timings.merge(t)
     return write_videos(Path(folder), name, frames, config.render), timings

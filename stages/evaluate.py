@@ -82,7 +82,7 @@ def main(opts: StageOptions) -> None:
         size, cfg, device = r.config.dataset.width, r.config, r.device  # a Ray task carries these, not the run
         results = run_tasks(lambda s, cfg=cfg, device=device: evaluate_sequence(s, cfg, refiner, methods, device,
                                                                                 metaball),
-                            group, cfg.executor, cfg.ray_address)
+                            group, cfg.executor, cfg.ray_address, device)
         by_size[size] = (results, aggregate(results, methods))
         for m in methods:
             t = by_size[size][1][m]

@@ -58,3 +58,29 @@ def test_ray_dataset_render_and_evaluate_equal_a_serial_run(tiny_dam, tmp_path):
         return data
 
     assert metrics(serial) == metrics(tmp_path / "ray_data")
+
+
+@pytest.mark.slow
+def test_ray_tasks_of_a_gpu_run_each_hold_a_gpu():
+    """A CUDA run's Ray tasks ask for their share of a GPU, so each gets its own instead of all of
+    them crowding onto the node's first: on a cluster told it has two GPUs each task is given one
+    (its ``CUDA_VISIBLE_DEVICES``, so its ``cuda:0``), the work is cut into one shard per GPU, and a
+    CPU run's tasks are given none."""
+    import os
+
+    ray = pytest.importorskip("ray")
+    from pipeline.executor import TASKS_PER_GPU, cluster_slots
+
+    ray.init(num_cpus=3, num_gpus=2, include_dashboard=False, configure_logging=False, log_to_driver=False)
+    try:
+        assert cluster_slots("ray", "cuda:0") == 2 * TASKS_PER_GPU and cluster_slots("ray", "cpu") == 3
+
+        def sees(_):
+            return [str(i) for i in ray.get_gpu_ids()], os.environ.get("CUDA_VISIBLE_DEVICES")
+
+        for ids, visible in run_tasks(sees, [0, 1], "ray", device="cuda"):
+            assert len(ids) == 1 and visible == ids[0]
+        for ids, visible in run_tasks(sees, [0, 1], "ray", device="cpu"):
+            assert ids == [] and not visible
+    finally:
+        ray.shutdown()
