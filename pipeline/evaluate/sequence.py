@@ -136,7 +136,8 @@ def _summary(m: str, scores: dict, timings: dict) -> dict:
 
 
 def time_methods(seq: HeldOut, config: Config, methods, refiner, device: str, metaball=None) -> dict[str, float]:
-    """Wall milliseconds per frame of each method from particles to its normal map (first frames)."""
+    """Wall milliseconds per frame of each method from particles to its normal map (first frames;
+    on a GPU until its work is done, not only queued: the refined maps stay there as tensors)."""
     wdev = warp_device(device)
     ss, launch = ScreenSpace(wdev), Launcher(wdev)
     p = config.dataset
@@ -144,7 +145,7 @@ def time_methods(seq: HeldOut, config: Config, methods, refiner, device: str, me
     out = {}
     try:
         for m in methods:
-            t = Timings()
+            t = Timings(sync=True)
             for i, frame in enumerate(frames):
                 x, _ = load_frame(seq.sim_dir / frame_name(frame))
                 cam = camera_for_frame(seq.scene.cameras, seq.camera, i, len(seq.records), p.width, p.height)
