@@ -47,10 +47,14 @@ COMPARED = ("bilateral", "nrf", "refined", "metaball", "mesh")
 
 class SequenceRenderer:
     """Renders the frames of one sequence with ``render.method`` (and the compared methods) into
-    ``folder``, timing each step; ``close()`` (or ``with``) releases the device buffers."""
+    ``folder``, timing each step; ``close()`` (or ``with``) releases the device buffers.
+
+    ``on_device`` (default: on a GPU) keeps a frame's maps on the device as torch tensors between
+    its steps (the sky, the refined method's maps, the motion splat) and brings only the passes to
+    the host; on the CPU's tensors it renders what the host way does (tested)."""
 
     def __init__(self, folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner=None,
-                 metaball=None):
+                 metaball=None, on_device: bool | None = None):
         self.folder, self.name, self.config = Path(folder), name, config
         p = config.render
         self.methods = [p.method] + [m for m in COMPARED if p.comparison and m != p.method]
@@ -61,6 +65,7 @@ class SequenceRenderer:
         self.refiner, self.metaball = refiner, metaball
         wdev = warp_device(device)
         self.ss, self.launch = ScreenSpace(wdev), Launcher(wdev)
+        self.on_device = not self.launch.cpu if on_device is None else on_device
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
         self.background = BackgroundRenderer(around, p, p.width, p.height) if p.background == "scene" else None
         self.timings = Timings()
@@ -83,12 +88,12 @@ class SequenceRenderer:
                 bg, bg_depth = self.background.render(camera)
             else:  # nothing behind the fluid: it refracts the environment alone
                 bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
-            bg = self.shader.fill_sky(bg, bg_depth, camera, p, on_device=not self.launch.cpu)
+            bg = self.shader.fill_sky(bg, bg_depth, camera, p, on_device=self.on_device)
         shaded, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
         for method in self.methods:
             t = self.timings if method == p.method else Timings()
             src = normal_source(method, positions, radius, camera, self.config.dataset, self.ss, self.launch,
-                                self.refiner, p.normal_threshold, t, frame_cache, self.metaball)
+                                self.refiner, p.normal_threshold, t, frame_cache, self.metaball, self.on_device)
             shaded[method] = shade_frame(src, bg, bg_depth, camera, p, self.shader, t)
         return shaded
 
@@ -101,7 +106,7 @@ class SequenceRenderer:
             visible = frame.fluid[..., 3] > 0
             # on a GPU the particles' motion and the rim fill stay there; one download for the EXR
             fluid_motion, covered = self.ss.motion(positions, per_particle, radius, camera,
-                                                   np.where(visible, frame.depth, 0.0), on_device=not self.launch.cpu)
+                                                   np.where(visible, frame.depth, 0.0), on_device=self.on_device)
             frame.motion = host(motion_pass(frame.fluid[..., 3], fluid_motion, covered,
                                             camera_motion(frame.depth, camera, prev, nxt)))
 

@@ -277,3 +277,44 @@ def test_the_motion_pass_on_the_device_is_the_host_pass(ss):
         assert isinstance(got, torch.Tensor)
         np.testing.assert_array_equal(got.numpy(), want)
     np.testing.assert_array_equal(got_motion.numpy(), want_motion)  # the inputs are left as they were
+
+
+def test_the_render_loop_kept_on_the_device_writes_the_host_loops_frames(tmp_path):
+    """The render loop's GPU way (the sky, the refined maps and the motion splat kept as tensors
+    between the steps) run on the CPU's tensors: every frame's EXR carries the host way's mask,
+    depth, thickness and motion vectors, and its normals and colours to the rounding of the
+    refiner's torch-made input."""
+    from pipeline.frames import frame_name
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.inference import load_refiner
+
+    size = 128
+    p = RenderConfig(width=size, height=size, method="refined", comparison=False)
+    config = dataclasses.replace(Config(scenes=()), render=p)
+    camera = Camera(look_at((0.5, 0.6, 1.6), (0.5, 0.3, 0.5)), 40.0, size, size)
+    v = np.asarray((0.6, 0.3, 0.0), np.float32)
+    r = 0.02  # a jittered lattice ball of small particles: fluid the refiner keeps
+    g = np.arange(-0.2, 0.2 + 1e-9, 2 * r)
+    ball = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    ball = ball[np.linalg.norm(ball, axis=1) <= 0.2] + np.random.default_rng(4).uniform(-0.3, 0.3, (1, 3)) * r
+    ball = (ball + np.random.default_rng(5).uniform(-0.3, 0.3, ball.shape) * r + (0.5, 0.3, 0.5)).astype(np.float32)
+
+    def load(frame: int):
+        x = ball + v * (frame - 1) / FPS
+        return x, np.broadcast_to(v, x.shape).copy()
+
+    around = Surroundings((0.0, 0.0, 0.0), (1.0, 0.6, 1.0), walls=False)
+    refiner = load_refiner(SHIPPED_WEIGHTS)
+    frames = {}
+    for on_device in (False, True):
+        with SequenceRenderer(tmp_path / str(on_device), "drop", around, config, "cpu", refiner,
+                              on_device=on_device) as renderer:
+            renderer.render([1, 2], load, r, lambda i: camera, fps=FPS, videos=False)
+        frames[on_device] = [read_exr(tmp_path / str(on_device) / "frames" / frame_name(f, "exr")) for f in (1, 2)]
+    for host, dev in zip(frames[False], frames[True], strict=True):
+        assert host[f"{L}Mask.X"].sum() > 300 and np.abs(stack(host, f"{L}Vector.", "XYZW")).max() > 0.1
+        for name in (f"{L}Mask.X", f"{L}Depth.Z", f"{L}Thickness.X", *(f"{L}Vector.{c}" for c in "XYZW")):
+            np.testing.assert_array_equal(dev[name], host[name], err_msg=name)
+        for prefix, tol in (("ViewNormal.", 1e-4), ("Combined.", 2e-3)):
+            for name in [n for n in host if n.startswith(L + prefix)]:
+                np.testing.assert_allclose(dev[name], host[name], atol=tol, err_msg=name)
