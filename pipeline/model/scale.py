@@ -75,8 +75,7 @@ def _like(out: torch.Tensor, a):
 def area_average(values, weight, size: tuple[int, int]):
     """``values`` (C x H x W) averaged over ``weight`` (H x W, 0..1) in the pixels of an image of
     ``size`` (h, w), and the weight's own average there (the coverage)."""
-    vs = _like(torch.nn.functional.interpolate(_tensor(values * weight)[None], size=size, mode="area")[0], values)
-    ws = _like(torch.nn.functional.interpolate(_tensor(weight)[None, None], size=size, mode="area")[0, 0], values)
+    vs, ws = _resize(values * weight, size, "area"), _resize(weight[None], size, "area")[0]
     return vs / xp(vs).clip(ws, 1e-12, None), ws
 
 
