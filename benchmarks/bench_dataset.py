@@ -137,9 +137,9 @@ def main() -> None:
     print("\nmarching cubes on the anisotropic density grid, seconds")
     for name, (x, r) in frames.items():
         centres, g, ext = anisotropic_kernels(x, r, p, launch, device)
-        grid, _ = density_grid(centres, g, ext, (2 * r) ** 3, r / p.grid_cells_per_radius, launch, device)
+        field, _ = density_grid(centres, g, ext, (2 * r) ** 3, r / p.grid_cells_per_radius, launch, device)
+        grid = field.numpy()  # scikit-image's copy on the host (on the CPU a view)
         t_sk, (v, f, _, _) = _ms(lambda grid=grid: measure.marching_cubes(grid, p.iso_level), repeat=2)
-        field = wp.array(grid.astype(np.float32), dtype=float, device=device)
         t_wp, (wv, wf) = _ms(lambda field=field: IsoSurfaceMarchingCubes.extract(field, p.iso_level), repeat=2)
         print(f"{name:34s} grid {'x'.join(map(str, grid.shape)):>12s}  scikit-image {t_sk / 1000:5.2f} "
               f"({len(f):,} tris)  warp {t_wp / 1000:5.2f} ({len(wf) // 3:,} tris)")

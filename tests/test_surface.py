@@ -176,6 +176,44 @@ def test_warp_marching_cubes_gives_the_scikit_image_surface(device):
     assert abs(r.mean() - np.sqrt(0.5)) < 2e-3
 
 
+@pytest.mark.parametrize("backend", ["skimage", "warp"])
+def test_marching_cubes_of_a_grid_below_the_level_is_empty(backend):
+    """No surface where the density never reaches the level (scikit-image would refuse the level)."""
+    import warp as wp
+
+    from pipeline.surface import marching_cubes
+
+    grid = wp.array(np.full((6, 5, 4), 0.25, np.float32), dtype=float, device="cpu")
+    v, f = marching_cubes(grid, 0.5, 0.1, np.zeros(3), "cpu", backend)
+    assert v.shape == (0, 3) and f.shape == (0, 3)
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.cuda)])
+def test_grid_normals_are_numpy_gradients_taken_at_the_nodes_only(device):
+    """The fallback normals of vertices where the analytic gradient vanishes: ``np.gradient``'s
+    central differences inside the grid and one-sided ones on its faces, at the vertices' nearest
+    nodes (indices rounded, clipped into the grid), bit for bit, read on the grid's device."""
+    import warp as wp
+
+    from pipeline.parallel import Launcher
+    from pipeline.surface import _grid_normals
+    from pipeline.vectors import length
+
+    rng = np.random.default_rng(3)
+    grid = rng.random((9, 7, 5), dtype=np.float32)
+    index = rng.uniform(-0.7, np.array(grid.shape) - 0.3, (200, 3))
+    index[:8] = np.array([[0, 0, 0], [8, 6, 4], [0, 6, 2], [8, 0, 4], [4, 3, 0], [4, 3, 4], [-0.6, 7.4, 2], [3, 3, 3]])
+    at = tuple(np.clip(np.rint(index).astype(int), 0, np.asarray(grid.shape) - 1).T)
+    n = -np.stack([g[at] for g in np.gradient(grid)], axis=-1)
+    expected = (n / np.maximum(length(n), 1e-12)[..., None]).astype(np.float32)
+    launch = Launcher(device)
+    try:
+        got = _grid_normals(wp.array(grid, dtype=float, device=device), index, launch)
+    finally:
+        launch.close()
+    np.testing.assert_array_equal(got, expected)
+
+
 def _brute_force_density(centres, g, points):
     """sum_j det(G_j) (1 - |G_j (x - c_j)|^2)^3 and its gradient at each point, over every kernel."""
     r = points[:, None, :] - centres[None]                    # P x N x 3

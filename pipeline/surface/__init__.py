@@ -171,36 +171,46 @@ def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetCo
                       (extents.numpy() / scale).astype(np.float32))
 
 
-def marching_cubes(grid: np.ndarray, level: float, cell: float, origin: np.ndarray, device: str,
+def marching_cubes(grid: np.ndarray | wp.array, level: float, cell: float, origin: np.ndarray, device: str,
                    backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (world, float32) and triangles of the ``level`` set of a density grid.
+    """Vertices (world, float32) and triangles of the ``level`` set of a density grid (a 3D numpy
+    array, or ``density_grid``'s Warp array); none where the grid stays below ``level``.
 
     ``backend``: 'skimage' (``measure.marching_cubes``, the reference targets were built with it),
     'warp' (``warp.geometry.IsoSurfaceMarchingCubes``: kernels on the grid's device, no copy to
     the host on a GPU) or 'auto' (warp on CUDA, skimage on the CPU)."""
     use_warp = backend == "warp" or (backend == "auto" and str(device).startswith("cuda"))
     if not use_warp:
-        verts, faces, _, _ = measure.marching_cubes(grid, level=level, spacing=(cell, cell, cell),
+        values = grid.numpy() if isinstance(grid, wp.array) else grid
+        if values.max() <= level:  # scikit-image refuses a level outside the grid's range
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+        verts, faces, _, _ = measure.marching_cubes(values, level=level, spacing=(cell, cell, cell),
                                                     allow_degenerate=False)
         return (verts + origin).astype(np.float32), faces.astype(np.int32)
     from warp.geometry import IsoSurfaceMarchingCubes
 
-    field = wp.array(np.ascontiguousarray(grid, np.float32), dtype=float, device=device)
-    upper = origin + cell * (np.asarray(grid.shape) - 1)
+    field = grid if isinstance(grid, wp.array) and str(grid.device) == str(wp.get_device(device)) else \
+        wp.array(np.ascontiguousarray(grid.numpy() if isinstance(grid, wp.array) else grid, np.float32),
+                 dtype=float, device=device)
+    upper = origin + cell * (np.asarray(field.shape) - 1)
     verts, tris = IsoSurfaceMarchingCubes.extract(field, level, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
     return verts.numpy().astype(np.float32), tris.numpy().reshape(-1, 3).astype(np.int32)
 
 
-def _grid_normals(grid: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Outward (descending) unit gradient of the grid at the nearest nodes of fractional indices."""
-    at = tuple(np.clip(np.rint(index).astype(int), 0, np.asarray(grid.shape) - 1).T)
-    n = -np.stack([g[at] for g in np.gradient(grid)], axis=-1)
+def _grid_normals(grid: wp.array, index: np.ndarray, launch: Launcher) -> np.ndarray:
+    """Outward (descending) unit gradient of the grid at the nearest nodes of fractional indices:
+    ``np.gradient``'s differences, taken at those nodes only (``kernels.grid_gradient``)."""
+    nodes = np.clip(np.rint(index).astype(np.int32), 0, np.asarray(grid.shape) - 1)
+    out = wp.zeros(len(nodes), dtype=wp.vec3, device=grid.device)
+    launch(K.grid_gradient, len(nodes), [grid, wp.array(nodes, dtype=wp.vec3i, device=grid.device), out])
+    n = -out.numpy()
     return (n / np.maximum(length(n), 1e-12)[..., None]).astype(np.float32)
 
 
 def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volume: float, cell: float,
-                 launch: Launcher, device: str) -> tuple[np.ndarray, np.ndarray]:
-    """The anisotropic density on a grid covering every ellipsoid; returns (grid, origin)."""
+                 launch: Launcher, device: str) -> tuple[wp.array, np.ndarray]:
+    """The anisotropic density on a grid covering every ellipsoid; returns (grid, origin), the grid a
+    3D Warp array on ``device`` (on a GPU it never visits the host)."""
     c = centres.numpy()
     e = float(extents.numpy().max())
     lo = c.min(0) - e - 2 * cell
@@ -215,10 +225,11 @@ def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volum
         return [centres, kernel_g, extents, volume, wp.vec3(*lo), cell, *map(int, dims), buffers[chunk]]
 
     launch.map(K.splat_density, len(c), inputs)
-    grid = buffers[0].numpy()
-    for b in buffers[1:]:
-        grid = grid + b.numpy()
-    return grid.reshape(tuple(dims)), lo.astype(np.float64)
+    if len(buffers) > 1:  # the CPU's private chunk grids, summed into the first in chunk order
+        total = buffers[0].numpy()
+        for b in buffers[1:]:
+            total += b.numpy()
+    return buffers[0].reshape(tuple(map(int, dims))), lo.astype(np.float64)
 
 
 def density_normals(centres: wp.array, kernel_g: wp.array, extents: wp.array, vertices: np.ndarray,
@@ -249,16 +260,17 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
     cell = max(cell, span / (p.max_grid_cells - 5))
     with timings("density"):
         grid, origin = density_grid(centres, g, extents, particle_volume(radius), cell, launch, device)
-    if grid.max() <= p.iso_level:
-        return _empty()
     with timings("marching_cubes"):
         verts, faces = marching_cubes(grid, p.iso_level, cell, origin, device, p.marching_cubes)
+    if len(faces) == 0:
+        return _empty()
     with timings("normals"):
         normals = density_normals(centres, g, extents, verts, launch, device)
-    # where the analytic gradient vanishes (never in practice) fall back to the grid's gradient
-    bad = length(normals) < 0.5
-    if bad.any():
-        normals[bad] = _grid_normals(grid, (verts[bad] - origin) / cell)
+        # a few vertices a frame (0-14 of 40k in the dam break) lie where a kernel thinner than a
+        # cell already ends: the density there is 0 and so is its gradient; they take the grid's
+        bad = length(normals) < 0.5
+        if bad.any():
+            normals[bad] = _grid_normals(grid, (verts[bad] - origin) / cell, launch)
     mesh = SurfaceMesh(verts, faces, normals.astype(np.float32), timings)
     return mesh
 

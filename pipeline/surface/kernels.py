@@ -108,7 +108,8 @@ def splat_density(
 ):
     """Add V det(G) P(|G (x - c)|) of each particle to the grid nodes inside its ellipsoid.
 
-    Each chunk of particles writes a private grid (summed on the host), so no atomics race.
+    On the CPU each chunk of particles writes a private grid (the chunks are summed after), so no
+    atomics race; on CUDA one launch adds atomically.
     """
     i = wp.tid() + offset
     c = centres[i]
@@ -147,6 +148,30 @@ def splat_density(
                 if q2 < 1.0:
                     t = 1.0 - q2
                     density[(ix * ny + iy) * nz + iz] += amp * t * t * t
+
+
+@wp.kernel
+def grid_gradient(
+    offset: int,
+    grid: wp.array3d(dtype=float),
+    nodes: wp.array(dtype=wp.vec3i),
+    gradient_out: wp.array(dtype=wp.vec3),
+):
+    """``np.gradient``'s differences of a grid at a few nodes (unit spacing): central inside, one-sided
+    on the grid's faces. The grid stays where it is (on a GPU: never copied to the host)."""
+    k = wp.tid() + offset
+    node = nodes[k]
+    out = wp.vec3()
+    for axis in range(3):
+        lo = wp.vec3i(node)
+        hi = wp.vec3i(node)
+        lo[axis] = wp.max(node[axis] - 1, 0)
+        hi[axis] = wp.min(node[axis] + 1, grid.shape[axis] - 1)
+        d = grid[hi[0], hi[1], hi[2]] - grid[lo[0], lo[1], lo[2]]
+        if hi[axis] - lo[axis] == 2:
+            d = d / 2.0
+        out[axis] = d
+    gradient_out[k] = out
 
 
 NO_TRIANGLE = wp.constant(2147483647)
