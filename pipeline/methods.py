@@ -127,38 +127,48 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     t = timings or Timings()
     names = input_channels(refiner.splat)
     tensors = is_tensor(channels[names.raw])
-    # the host's two maps before the network is queued: bringing them later would wait for it
-    fluid = host(channels[names.fluid] > 0)
-    blurred = host(channels[names.blurred])
+    device_way = refiner.device.type != "cpu" if on_device is None else on_device
+    if tensors or device_way:  # the reach and the depth where the network's output lies
+        fluid = torch.as_tensor(channels[names.fluid], device=refiner.device) > 0
+        blurred = torch.as_tensor(channels[names.blurred], device=refiner.device)
+    else:
+        fluid, blurred = channels[names.fluid] > 0, channels[names.blurred]
     with t("prepare"):
         source = channels
-        if refiner.device.type != "cpu" if on_device is None else on_device:
+        if device_way:
             source = {c: torch.as_tensor(channels[c], device=refiner.device)
                       for c in (*names.normal, names.raw, names.blurred)}
         view = prepare(source, refiner.spec, focal_px, radius)
     with t("network"):
         n = refiner.run(view.inputs, view.fluid)  # 3 x h x w, on the refiner's device (queued on a GPU)
     with t("post"):
-        # the distance transform on the host while a GPU still runs the network; the rest on the device
+        # on the device's tensors nothing waits for the network until the mask and depth come down
         reach = REFINED_REACH_PX / view.scale if refiner.spec.features == "radius" else 0.0
-        nearest = NearestFluid.of(fluid, reach) if reach > 0 and fluid.any() else None
+        nearest = NearestFluid.of(fluid, reach) if reach > 0 and (is_tensor(fluid) or fluid.any()) else None
         n = resize_normal_map(n, fluid.shape)
         lengths = length(n, axis=0)
         mask_t = refined_mask(n.movedim(0, -1), fluid, threshold, reach, lengths, nearest)
         out = torch.where(mask_t, n / lengths.clamp_min(1e-6), 0.0).permute(1, 2, 0).contiguous()
         out = out if tensors else out.cpu().numpy()
-        mask = mask_t.cpu().numpy()
-        if nearest is not None and np.array_equal(blurred > 0, fluid):
-            depth = nearest.spread(blurred, mask)
+        if is_tensor(fluid):  # the depth's own transform: whether its support is the fluid's is not asked
+            depth = host(extend_depth(blurred, mask_t))
+            mask = mask_t.cpu().numpy()
         else:
-            depth = extend_depth(blurred, mask)
+            mask = mask_t.cpu().numpy()
+            if nearest is not None and np.array_equal(blurred > 0, fluid):
+                depth = nearest.spread(blurred, mask)
+            else:
+                depth = extend_depth(blurred, mask)
     return out, mask, depth
 
 
 def extend_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``depth`` (0 = empty) on ``mask``, each masked pixel without a depth of its own taking its
-    nearest depth pixel's (refined silhouettes reach past the splat); 0 off the mask."""
+    nearest depth pixel's (refined silhouettes reach past the splat); 0 off the mask. Numpy arrays
+    or torch tensors (``NearestFluid``)."""
     have = depth > 0
+    if is_tensor(depth):  # where the tensors lie, the same numbers (no emptiness check: no wait)
+        return NearestFluid.of(have, 0.0).spread(depth, mask)
     if not have.any() or not mask.any():
         return np.zeros_like(depth)
     from scipy.ndimage import distance_transform_edt

@@ -112,6 +112,75 @@ def test_windowed_distance_transforms_give_the_whole_image_results(seed):
     np.testing.assert_array_equal(nearest.spread(depth, within), np.where(within, whole, 0.0))
 
 
+def _transform_cases():
+    """Masks for the feature transform: sparse to dense noise, lone pixels, a row of pixels (ties
+    along every column), a checkerboard (ties everywhere), a full and an empty image, odd shapes."""
+    rng = np.random.default_rng(7)
+    cases = [rng.random((int(h), int(w))) < share
+             for h, w, share in zip(rng.integers(1, 70, 24), rng.integers(1, 70, 24),
+                                    np.tile([0.001, 0.01, 0.1, 0.5, 0.9, 0.3], 4), strict=True)]
+    row = np.zeros((41, 37), bool)
+    row[20, ::3] = True
+    lone = np.zeros((50, 64), bool)
+    lone[[0, 49, 17], [63, 0, 30]] = True
+    checker = (np.indices((33, 40)).sum(0) % 7 == 0)
+    return [*cases, row, lone, checker, np.ones((5, 9), bool), np.zeros((6, 4), bool), np.ones((1, 1), bool)]
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_the_device_feature_transform_gives_scipys_numbers(device):
+    """``nearest_fluid_pixels`` (the transform a GPU's refined frame uses) gives scipy's distances
+    and nearest pixels bit for bit, equidistant candidates included; without fluid, infinite
+    distances and -1."""
+    import torch
+    from scipy.ndimage import distance_transform_edt
+
+    from pipeline.screen import nearest_fluid_pixels
+
+    for k, fluid in enumerate(_transform_cases()):
+        distance, rows, cols = (a.cpu().numpy() for a in nearest_fluid_pixels(torch.from_numpy(fluid).to(device)))
+        if not fluid.any():
+            assert np.isinf(distance).all() and (rows == -1).all() and (cols == -1).all()
+            continue
+        expected, (er, ec) = distance_transform_edt(~fluid, return_indices=True)
+        assert distance.dtype == expected.dtype
+        np.testing.assert_array_equal(distance, expected, err_msg=f"case {k}")
+        np.testing.assert_array_equal(rows, er, err_msg=f"case {k}")
+        np.testing.assert_array_equal(cols, ec, err_msg=f"case {k}")
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_nearest_fluid_of_a_tensor_gives_the_host_reach_and_spread(seed):
+    """The tensor way of ``NearestFluid`` and ``extend_depth`` (the whole image, where the tensor
+    lies) gives the host's windowed results exactly, an image without fluid included."""
+    import torch
+    from scipy.ndimage import binary_dilation
+
+    from pipeline.evaluate.metrics import NearestFluid
+    from pipeline.methods import extend_depth
+
+    rng = np.random.default_rng(seed)
+    fluid = np.zeros((80, 100), bool)
+    for _ in range(4):
+        r, c = rng.integers(0, 80), rng.integers(0, 100)
+        fluid[max(r - 5, 0):r + 5, max(c - 8, 0):c + 8] = True
+    fluid &= rng.random(fluid.shape) > 0.3
+    depth = np.where(fluid, rng.integers(1, 5, fluid.shape), 0).astype(np.float32)
+    mask = binary_dilation(fluid, iterations=3) & (rng.random(fluid.shape) > 0.2)
+    host, dev = NearestFluid.of(fluid, 3.5), NearestFluid.of(torch.from_numpy(fluid), 3.5)
+    for reach in (0.5, 2.0, 3.5):
+        assert isinstance(dev.near(reach), torch.Tensor)
+        np.testing.assert_array_equal(dev.near(reach).numpy(), host.near(reach))
+    within = mask & host.near(3.5)
+    np.testing.assert_array_equal(dev.spread(torch.from_numpy(depth), torch.from_numpy(within)).numpy(),
+                                  host.spread(depth, within))
+    np.testing.assert_array_equal(extend_depth(torch.from_numpy(depth), torch.from_numpy(mask)).numpy(),
+                                  extend_depth(depth, mask))
+    empty = torch.zeros((6, 7))
+    assert not extend_depth(empty, torch.ones((6, 7), dtype=torch.bool)).any()
+    assert not NearestFluid.of(empty > 0, 2.0).near(2.0).any()
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_vector_length_is_numpys_norm_bit_for_bit(dtype):
     """``pipeline.vectors.length`` replaces ``np.linalg.norm`` on images for speed: it must add the

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.vectors import length
+from pipeline.vectors import is_tensor, length
 
 
 def normal_mask(normals: np.ndarray, threshold: float = 0.5, lengths: np.ndarray | None = None) -> np.ndarray:
@@ -36,7 +36,11 @@ class NearestFluid:
     """Every pixel's distance to its nearest ``fluid`` pixel and where that pixel is, from one
     distance transform on the fluid's bounding box grown past ``reach_px``: every pixel outside the
     box is further away, and inside it the nearest fluid pixel is the one of the whole image
-    (tested). ``near`` and the renderer's depth spread (``spread``) share it."""
+    (tested). ``near`` and the renderer's depth spread (``spread``) share it.
+
+    Of a torch tensor (a GPU's maps) the transform is made where the tensor lies, on the whole
+    image (``pipeline.screen.nearest_fluid_pixels``: scipy's numbers, no trip to the host), and its
+    fields, ``near`` and ``spread`` are tensors there; an image without fluid is allowed then."""
 
     shape: tuple[int, int]
     window: tuple[slice, slice]
@@ -47,6 +51,10 @@ class NearestFluid:
     @classmethod
     def of(cls, fluid: np.ndarray, reach_px: float) -> NearestFluid:
         """The transform of ``fluid`` (which must have a pixel) for reaches up to ``reach_px``."""
+        if is_tensor(fluid):
+            from pipeline.screen import nearest_fluid_pixels
+
+            return cls(tuple(fluid.shape), (slice(None), slice(None)), *nearest_fluid_pixels(fluid))
         from scipy.ndimage import distance_transform_edt
 
         window = bounding_window(fluid, int(np.ceil(reach_px)) + 1)
@@ -55,6 +63,8 @@ class NearestFluid:
 
     def near(self, reach_px: float) -> np.ndarray:
         """Pixels at most ``reach_px`` (no more than the reach it was made for) from a fluid pixel."""
+        if is_tensor(self.distance):
+            return self.distance <= reach_px
         out = np.zeros(self.shape, bool)
         out[self.window] = self.distance <= reach_px
         return out
@@ -62,6 +72,12 @@ class NearestFluid:
     def spread(self, values: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """``values`` at each ``mask`` pixel taken from its nearest fluid pixel (0 off the mask; the
         mask must lie within the reach)."""
+        if is_tensor(self.distance):
+            import torch
+
+            found = self.rows >= 0
+            picked = values[self.rows.clamp_min(0).long(), self.cols.clamp_min(0).long()]
+            return torch.where(mask & found, picked, 0.0).to(torch.float32)
         w = self.window
         out = np.zeros(values.shape, np.float32)
         out[w] = np.where(mask[w], values[w][self.rows, self.cols], 0.0)
@@ -86,7 +102,7 @@ def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5,
     one there too."""
     within = nearest.near(reach_px) if nearest is not None and reach_px > 0 else near(fluid, reach_px)
     long_enough = normal_mask(normals, threshold, lengths)
-    if not isinstance(long_enough, np.ndarray):
+    if not isinstance(long_enough, np.ndarray) and not is_tensor(within):
         import torch
 
         within = torch.from_numpy(within).to(long_enough.device)

@@ -51,6 +51,43 @@ def row_bands(launch: Launcher, height: int) -> list[tuple[int, int]]:
     return [(bounds[k], bounds[k + 1]) for k in range(count) if bounds[k + 1] > bounds[k]]
 
 
+def nearest_fluid_pixels(fluid):
+    """Exact Euclidean feature transform of a boolean H x W torch tensor, where it lies: each
+    pixel's distance to its nearest ``fluid`` pixel (float64; infinite without fluid) and that
+    pixel's row and column (int32; -1 without fluid). The algorithm and tie rules of
+    ``scipy.ndimage.distance_transform_edt(~fluid, return_indices=True)``, and its numbers bit for
+    bit (tested), as two Warp passes on torch's stream: one thread per column, then per row."""
+    import torch
+
+    h, w = fluid.shape
+    device = fluid.device
+    rows = torch.empty((h, w), dtype=torch.int32, device=device)
+    cols, envelope = torch.empty_like(rows), torch.empty_like(rows)
+    distance = torch.empty((h, w), dtype=torch.float64, device=device)
+    if h == 0 or w == 0:
+        return distance, rows, cols
+    site_row = torch.empty_like(rows)
+    wp.init()
+    on = wp.device_from_torch(device)
+    stream = wp.stream_from_torch(device) if on.is_cuda else None
+    with wp.ScopedStream(stream) if stream is not None else _no_scope():
+        wp.launch(K.nearest_in_column, w, [wp.from_torch(fluid.to(torch.uint8).contiguous()), wp.from_torch(site_row)],
+                  device=on)
+        wp.launch(K.nearest_in_row, h, [wp.from_torch(site_row), wp.from_torch(envelope), wp.from_torch(rows),
+                                       wp.from_torch(cols), wp.from_torch(distance)], device=on)
+    return distance, rows, cols
+
+
+class _no_scope:
+    """A ``with`` block that does nothing (the CPU has no streams)."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
 class ScreenSpace:
     """Runs the screen-space kernels for one device (holds the thread pool and the frame buffers).
 

@@ -549,3 +549,88 @@ def finish_motion(offset: int, motion_sum: wp.array(dtype=wp.vec4), weight: wp.a
         motion[idx] = motion_sum[idx] / w
     else:
         motion[idx] = wp.vec4(0.0, 0.0, 0.0, 0.0)
+
+
+@wp.kernel
+def nearest_in_column(fluid: wp.array2d(dtype=wp.uint8), site_row: wp.array2d(dtype=int)):
+    """First pass of the exact Euclidean feature transform (Maurer et al. 2003, the algorithm and
+    tie rules of ``scipy.ndimage.distance_transform_edt``): each pixel's nearest fluid pixel within
+    its own column, the upper one (lower row) on a tie; -1 in a column without fluid. One thread
+    per column, two sweeps."""
+    x = wp.tid()
+    h = fluid.shape[0]
+    last = int(-1)
+    for y in range(h):
+        if fluid[y, x] != wp.uint8(0):
+            last = y
+        site_row[y, x] = last
+    below = int(-1)
+    for k in range(h):
+        y = h - 1 - k
+        if fluid[y, x] != wp.uint8(0):
+            below = y
+        above = site_row[y, x]
+        if below >= 0 and (above < 0 or below - y < y - above):
+            site_row[y, x] = below
+
+
+@wp.func
+def _square_distance(site_row: int, site_col: int, y: int, x: int) -> wp.int64:
+    dy = wp.int64(site_row - y)
+    dx = wp.int64(site_col - x)
+    return dy * dy + dx * dx
+
+
+@wp.kernel
+def nearest_in_row(
+    site_row: wp.array2d(dtype=int),
+    envelope: wp.array2d(dtype=int),
+    rows_out: wp.array2d(dtype=int),
+    cols_out: wp.array2d(dtype=int),
+    distance_out: wp.array2d(dtype=wp.float64),
+):
+    """Second pass: along each row, the lower envelope of the columns' nearest pixels (``envelope``
+    is the row's scratch list of site columns) and each pixel's nearest site on it, with scipy's
+    exact integer tests and ties, so the nearest fluid pixel (row, column) and its distance equal
+    scipy's bit for bit. No fluid at all: -1 and an infinite distance. One thread per row."""
+    y = wp.tid()
+    w = site_row.shape[1]
+    top = int(-1)
+    for col in range(w):
+        r = site_row[y, col]
+        if r >= 0:
+            wr = wp.int64(r - y) * wp.int64(r - y)
+            while top >= 1:
+                c1 = envelope[y, top]
+                c2 = envelope[y, top - 1]
+                a = wp.int64(c1 - c2)
+                b = wp.int64(col - c1)
+                c = a + b
+                ur = wp.int64(site_row[y, c2] - y) * wp.int64(site_row[y, c2] - y)
+                vr = wp.int64(site_row[y, c1] - y) * wp.int64(site_row[y, c1] - y)
+                if c * vr - b * ur - a * wr - a * b * c <= wp.int64(0):
+                    break
+                top -= 1
+            top += 1
+            envelope[y, top] = col
+    if top < 0:
+        for x in range(w):
+            rows_out[y, x] = -1
+            cols_out[y, x] = -1
+            distance_out[y, x] = wp.float64(wp.inf)
+        return
+    k = int(0)
+    for x in range(w):
+        site = envelope[y, k]
+        d1 = _square_distance(site_row[y, site], site, y, x)
+        while k < top:
+            following = envelope[y, k + 1]
+            d2 = _square_distance(site_row[y, following], following, y, x)
+            if d1 <= d2:
+                break
+            d1 = d2
+            k += 1
+        site = envelope[y, k]
+        rows_out[y, x] = site_row[y, site]
+        cols_out[y, x] = site
+        distance_out[y, x] = wp.sqrt(wp.float64(d1))
