@@ -185,7 +185,7 @@ def main() -> None:
     print("\ninputs = anisotropy (ellipsoid input only) + splat + filter + normals + copies; refiner = folded, "
           "channels-last, cropped to the fluid (nocrop: whole image): prep (the input at the working scale: "
           "numpy on a CPU, torch on the refiner's GPU) + net (the generator) + post (back to the view's size, "
-          "mask and depth; on the refiner's device but for the reach's distance transform and the depth); "
+          "mask and depth; on the refiner's device, the reach's distance transform and depth spread too on a GPU); "
           "plain = the training-time module's forward pass; pipelined = a frame of the render loop, inputs + "
           "refiner + shading with the EXR written on a background thread")
     if args.json:
