@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.config import Cameras
 from pipeline.particles import Z_UP_TO_Y_UP
+from pipeline.vectors import is_tensor
 
 
 def look_at(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
@@ -59,8 +60,14 @@ class Camera:
         return np.linalg.inv(self.view)
 
     def to_view(self, points: np.ndarray) -> np.ndarray:
-        """World points (N x 3) to view space."""
-        return points @ self.view[:3, :3].T + self.view[:3, 3]
+        """World points (N x 3) to view space (a torch tensor: in its dtype, on its device)."""
+        rotation, offset = self.view[:3, :3].T, self.view[:3, 3]
+        if is_tensor(points):
+            import torch
+
+            rotation, offset = (torch.as_tensor(a, dtype=points.dtype, device=points.device)
+                                for a in (rotation, offset))
+        return points @ rotation + offset
 
     def project(self, points_view: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """View points to (column, row, depth) in pixels and metres."""

@@ -15,6 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import torch
+import warp as wp
 from tqdm import tqdm
 
 from pipeline.camera import Camera
@@ -102,6 +104,10 @@ class SequenceRenderer:
         """Fill ``frame.motion``: the particles' screen motion where the fluid shows, the camera's
         elsewhere (``prev``/``nxt``: the neighbouring rendered frames' cameras and frame gaps)."""
         with self.timings("motion"):
+            if self.on_device:  # each particle's motion made on the device (1M particles: 0.15 s on a host)
+                on = wp.device_to_torch(self.launch.device)
+                positions = torch.as_tensor(positions, device=on)
+                velocities = None if velocities is None else torch.as_tensor(velocities, device=on)
             per_particle = particle_motion(positions, velocities, camera, fps, prev, nxt)
             visible = frame.fluid[..., 3] > 0
             # on a GPU the particles' motion and the rim fill stay there; one download for the EXR

@@ -14,6 +14,7 @@ from pipeline.config import Config, RenderConfig
 from pipeline.exr import read_exr, read_exr_header, stack
 from pipeline.methods import channel_names
 from pipeline.renderer import SequenceRenderer
+from pipeline.screen.motion import particle_motion
 from pipeline.shading.background import Surroundings
 
 SIZE = 64
@@ -247,6 +248,26 @@ def test_motion_pass_fills_uncovered_rims_and_keeps_the_background():
     np.testing.assert_array_equal(out[visible == 0], 0.5)
 
 
+def test_particle_motion_of_tensors_is_the_host_motion():
+    """On a GPU each particle's motion is made by torch from the uploaded positions and velocities:
+    the same float64 arithmetic as numpy's, so on the CPU's tensors the same numbers, with moving
+    cameras, frame gaps, particles behind a camera and particles at rest."""
+    import torch
+
+    rng = np.random.default_rng(5)
+    x = (rng.random((3000, 3)) * [2.0, 1.0, 4.5] - [1.0, 0.0, 2.5]).astype(np.float32)
+    v = rng.normal(size=(3000, 3)).astype(np.float32)
+    cams = [Camera(look_at((0.1 * k, 0.4, 1.0 - 0.05 * k), (0.0, 0.2, -0.5)), 50.0, 96, 64) for k in range(3)]
+    assert (cams[1].to_view(x.astype(np.float64))[:, 2] > 0).sum() > 100, "some particles behind the camera"
+    for velocities, prev, nxt in ((v, (cams[0], 1), (cams[2], 2)), (None, None, None), (v, None, (cams[2], 1))):
+        want = particle_motion(x, velocities, cams[1], FPS, prev, nxt)
+        got = particle_motion(torch.from_numpy(x), None if velocities is None else torch.from_numpy(velocities),
+                              cams[1], FPS, prev, nxt)
+        assert isinstance(got, torch.Tensor) and got.dtype == torch.float32
+        np.testing.assert_allclose(got.numpy(), want, rtol=1e-6, atol=1e-5)
+        assert (got.numpy() == want).mean() > 0.999
+
+
 def test_the_motion_pass_on_the_device_is_the_host_pass(ss):
     """On a GPU the motion splat's maps stay torch tensors and the rim fill runs on them. On the
     CPU's tensors it must give the host pass bit for bit: rims several rings wide, holes at the
@@ -265,6 +286,10 @@ def test_the_motion_pass_on_the_device_is_the_host_pass(ss):
     assert isinstance(got_motion, torch.Tensor) and isinstance(got_covered, torch.Tensor)
     np.testing.assert_array_equal(got_motion.numpy(), want_motion)
     np.testing.assert_array_equal(got_covered.numpy(), want_covered)
+    # the particles and their motion as tensors too (a GPU's frame): Warp reads them in place
+    from_tensors = ss.motion(torch.from_numpy(x), torch.from_numpy(per_particle), RADIUS, cam, on_device=True)
+    np.testing.assert_array_equal(from_tensors[0].numpy(), want_motion)
+    np.testing.assert_array_equal(from_tensors[1].numpy(), want_covered)
     from scipy.ndimage import binary_dilation
 
     visible = binary_dilation(want_covered, iterations=5).astype(np.float32)

@@ -16,10 +16,11 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
-from pipeline.device import torch_waits_for_warp
+from pipeline.device import torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
+from pipeline.vectors import host, is_tensor
 
 if TYPE_CHECKING:  # annotations only: the surface kernels use the screen kernels' pixel_ray
     from pipeline.surface import Ellipsoids
@@ -276,10 +277,11 @@ class ScreenSpace:
         nearest count as front-most. ``depth`` (H x W view depth of the surface the frame shows,
         0 or inf where none) replaces that nearest depth, and saves a splat: particles within two
         radii of it count, a margin for filtered depths. ``on_device``: both as torch tensors left
-        on the device (``inputs``)."""
+        on the device (``inputs``). The positions and their motion may be torch tensors on the
+        device (``particle_motion`` of tensors): Warp reads them where they lie."""
         w, h = camera.width, camera.height
         if depth is None:
-            reference, band = self._splat(positions_world, radius, camera)[0], radius
+            reference, band = self._splat(host(positions_world), radius, camera)[0], radius
         else:
             reference, band = self._upload("motion_depth", np.where(np.isfinite(depth), depth, 0.0)), 2 * radius
         total, weight = self._buffer("motion_sum", w * h, wp.vec4), self._buffer("motion_weight", w * h)
@@ -287,15 +289,24 @@ class ScreenSpace:
         weight.zero_()
         n = len(positions_world)
         if n:
-            centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
-                               dtype=wp.vec3, device=self.device)
-            motion = wp.array(np.ascontiguousarray(particle_motion, np.float32), dtype=wp.vec4, device=self.device)
+            if is_tensor(positions_world):  # made on the device by torch: Warp reads them there
+                import torch
+
+                centers = camera.to_view(positions_world.to(torch.float64)).to(torch.float32).contiguous()
+                motion = particle_motion.to(torch.float32).contiguous()
+                warp_waits_for_torch(self.device)  # torch_waits_for_warp below keeps their memory till read
+                centers, motion = wp.from_torch(centers, dtype=wp.vec3), wp.from_torch(motion, dtype=wp.vec4)
+            else:
+                centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
+                                   dtype=wp.vec3, device=self.device)
+                motion = wp.array(np.ascontiguousarray(particle_motion, np.float32), dtype=wp.vec4,
+                                  device=self.device)
             self.launch.tasks(K.splat_motion, n, [[centers, motion, radius, camera.focal_px, w, h, r0, r1, reference,
                                                    band, total, weight] for r0, r1 in row_bands(self.launch, h)])
         out = self._buffer("motion", w * h, wp.vec4)
         self.launch(K.finish_motion, w * h, [total, weight, out])
         motion, covered = self._take(out, (h, w, 4), on_device), self._take(weight, (h, w), on_device) > 0
-        if on_device:
+        if on_device or is_tensor(positions_world):
             torch_waits_for_warp(self.device)
         return motion, covered
 

@@ -13,27 +13,38 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.camera import Camera
+from pipeline.vectors import is_tensor, xp
 
 
-def _pixels(points_world: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(column, row) pixel coordinates (N x 2, rows down) and whether each point is in front."""
+def _pixels(points_world, camera: Camera):
+    """(column, row) pixel coordinates (N x 2, rows down) and whether each point is in front; numpy
+    arrays or torch tensors."""
     col, row, d = camera.project(camera.to_view(points_world))
     front = d > 1e-6
-    return np.stack([np.where(front, col, 0.0), np.where(front, row, 0.0)], -1), front
+    where = xp(col).where
+    return xp(col).stack([where(front, col, 0.0), where(front, row, 0.0)], -1), front
 
 
-def _up(delta_px: np.ndarray) -> np.ndarray:
+def _up(delta_px):
     """Pixel displacements (rows down) with +Y up."""
-    return delta_px * np.array([1.0, -1.0])
+    return delta_px * xp(delta_px).asarray([1.0, -1.0], dtype=delta_px.dtype, **_on(delta_px))
 
 
-def particle_motion(positions: np.ndarray, velocities: np.ndarray | None, camera: Camera, fps: float,
-                    prev: tuple[Camera, int] | None = None, nxt: tuple[Camera, int] | None = None) -> np.ndarray:
+def _on(a) -> dict:
+    """The keyword that puts a new torch tensor on ``a``'s device (none for numpy)."""
+    return {"device": a.device} if is_tensor(a) else {}
+
+
+def particle_motion(positions, velocities, camera: Camera, fps: float, prev: tuple[Camera, int] | None = None,
+                    nxt: tuple[Camera, int] | None = None):
     """N x 4 motion of each particle (``Vector`` layout, pixels per frame) from its velocity (m/s,
     None: at rest) at ``fps`` frames per second, with the cameras (and frame gaps) of the previous
-    and next rendered frames (None: this frame's camera, gap 1). Points behind a camera get 0."""
-    x = np.asarray(positions, np.float64)
-    step = np.zeros_like(x) if velocities is None else np.asarray(velocities, np.float64) / fps
+    and next rendered frames (None: this frame's camera, gap 1). Points behind a camera get 0.
+    Torch tensors (a GPU's frame) give a float32 tensor on their device, from the same float64
+    arithmetic as numpy's (equal to rounding: the matrix products may sum in another order)."""
+    m = xp(positions)
+    x = m.asarray(positions, dtype=m.float64, **_on(positions))
+    step = m.zeros_like(x) if velocities is None else m.asarray(velocities, dtype=m.float64, **_on(x)) / fps
     cam_prev, gap_prev = prev or (camera, 1)
     cam_next, gap_next = nxt or (camera, 1)
     now, front = _pixels(x, camera)
@@ -41,9 +52,9 @@ def particle_motion(positions: np.ndarray, velocities: np.ndarray | None, camera
     after, front_next = _pixels(x + step * gap_next, cam_next)
     back = _up(before - now) / gap_prev
     ahead = _up(now - after) / gap_next
-    out = np.concatenate([np.where((front & front_prev)[:, None], back, 0.0),
-                          np.where((front & front_next)[:, None], ahead, 0.0)], axis=1)
-    return out.astype(np.float32)
+    out = m.concatenate([m.where((front & front_prev)[:, None], back, 0.0),
+                         m.where((front & front_next)[:, None], ahead, 0.0)], axis=1)
+    return out.astype(np.float32) if m is np else out.to(m.float32)
 
 
 def camera_motion(depth: np.ndarray, camera: Camera, prev: tuple[Camera, int] | None = None,
