@@ -114,7 +114,7 @@ class SequenceRenderer:
             fluid_motion, covered = self.ss.motion(positions, per_particle, radius, camera,
                                                    np.where(visible, frame.depth, 0.0), on_device=self.on_device)
             frame.motion = host(motion_pass(frame.fluid[..., 3], fluid_motion, covered,
-                                            camera_motion(frame.depth, camera, prev, nxt)))
+                                            camera_motion(frame.depth, camera, prev, nxt, self.launch, self.on_device)))
 
     def write(self, frame: int, camera: Camera, fps: float, shaded: dict[str, RenderedFrame],
               timings: Timings) -> None:

@@ -213,6 +213,57 @@ def test_a_moving_camera_moves_the_background(tmp_path):
     assert np.abs(vec[r, c]).max() > 0.5
 
 
+def _numpy_camera_motion(depth, camera, prev, nxt):
+    """The reference: static points unprojected, taken to the world and projected into each
+    neighbouring camera with numpy (float64), as the renderer did before its Warp pass."""
+    out = np.zeros((*depth.shape, 4), np.float32)
+    solid = np.isfinite(depth) & (depth > 0)
+    points = (camera.unproject(np.where(solid, depth, 0.0))[solid].astype(np.float64) - camera.view[:3, 3]) \
+        @ camera.view[:3, :3]
+    col, row, _ = camera.project(camera.to_view(points))
+    for k, (other, sign) in enumerate(((prev, 1.0), (nxt, -1.0))):
+        if other is None:
+            continue
+        c, r, d = other[0].project(other[0].to_view(points))
+        delta = np.stack([c - col, -(r - row)], -1) * sign / other[1]
+        out[solid, 2 * k:2 * k + 2] = np.where((d > 1e-6)[:, None], delta, 0.0)
+    return out
+
+
+def test_the_camera_motion_pass_reprojects_static_surfaces():
+    """The camera's motion of static surfaces (a Warp pass on the frame's device) is numpy's
+    reprojection into the neighbouring cameras to rounding: frame gaps of 1 and 3, one neighbour
+    or two, surfaces behind the next camera, empty (0) and infinite depths; on the CPU's tensors
+    it gives the same; a camera at rest gives None."""
+    import torch
+
+    from pipeline.parallel import Launcher
+    from pipeline.screen.motion import camera_motion
+
+    rng = np.random.default_rng(4)
+    size = (48, 64)
+    cams = [Camera(look_at((0.3 * k, 0.5, 2.0 - 0.8 * k), (0.0, 0.0, 0.0)), 45.0, size[1], size[0]) for k in range(2)]
+    cams.append(Camera(look_at((0.3, 0.4, 0.5), (-3.0, 0.0, -3.0)), 45.0, size[1], size[0]))  # turned: much behind
+    depth = rng.uniform(0.5, 6.0, size).astype(np.float32)
+    depth[:5] = 0.0
+    depth[-4:, :10] = np.inf
+    launch = Launcher("cpu")
+    try:
+        assert camera_motion(depth, cams[1], (cams[1], 1), None, launch) is None
+        for prev, nxt in (((cams[0], 1), (cams[2], 3)), (None, (cams[2], 1)), ((cams[0], 3), None)):
+            want = _numpy_camera_motion(depth, cams[1], prev, nxt)
+            got = camera_motion(depth, cams[1], prev, nxt, launch)
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-4)
+            assert (got == want).mean() > 0.95 and np.abs(got).max() > 1.0
+            on_device = camera_motion(torch.from_numpy(depth), cams[1], prev, nxt, launch, on_device=True)
+            assert isinstance(on_device, torch.Tensor)
+            np.testing.assert_array_equal(on_device.numpy(), got)
+        behind = _numpy_camera_motion(depth, cams[1], None, (cams[2], 1))[..., 2:]
+        assert (np.isfinite(depth) & (depth > 0) & (behind == 0).all(-1)).sum() > 10, "some points behind"
+    finally:
+        launch.close()
+
+
 def test_the_motion_splat_takes_the_front_particle(ss):
     """Two particles on one line of sight: pixels show the nearer one's motion; a reference depth
     (the frame's filtered surface) gives the same answer as the splat's own nearest depth."""

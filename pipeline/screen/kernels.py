@@ -634,3 +634,55 @@ def nearest_in_row(
         rows_out[y, x] = site_row[y, site]
         cols_out[y, x] = site
         distance_out[y, x] = wp.sqrt(wp.float64(d1))
+
+
+@wp.kernel
+def static_motion(
+    offset: int,
+    depth: wp.array(dtype=float),
+    width: int,
+    height: int,
+    focal: wp.float64,
+    view_rotation: wp.mat33d,
+    view_shift: wp.vec3d,
+    other_rotation: wp.mat33d,
+    other_shift: wp.vec3d,
+    other_focal: wp.float64,
+    other_width: int,
+    other_height: int,
+    sign: wp.float64,
+    gap: wp.float64,
+    slot: int,
+    motion_out: wp.array(dtype=wp.vec4),
+):
+    """The motion of a static surface at each pixel's view ``depth`` (0 or inf: none) caused by the
+    camera moving: where the point lies in the other camera's image minus where it lies in this
+    one (pixels, +Y up), times ``sign`` (``Vector``'s slot's) over the frame ``gap``, into
+    components ``2 slot`` and ``2 slot + 1``; 0 where the point is behind the other camera. Float64
+    as ``pipeline.screen.motion`` did it in numpy, from the same float32 view-space point."""
+    k = wp.tid() + offset
+    d = depth[k]
+    if not (wp.isfinite(d) and d > 0.0):
+        return
+    x = k % width
+    y = k // width
+    half_w = wp.float64(width) / wp.float64(2.0)
+    half_h = wp.float64(height) / wp.float64(2.0)
+    ray_x = wp.float32((wp.float64(x) + wp.float64(0.5) - half_w) / focal)
+    ray_y = wp.float32(-(wp.float64(y) + wp.float64(0.5) - half_h) / focal)
+    p = wp.vec3d(wp.float64(ray_x * d), wp.float64(ray_y * d), wp.float64(-d))
+    col = half_w + focal * p[0] / -p[2]
+    row = half_h - focal * p[1] / -p[2]
+    world = wp.transpose(view_rotation) * (p - view_shift)
+    q = other_rotation * world + other_shift
+    there = -q[2]
+    out = motion_out[k]
+    if there > wp.float64(1.0e-6):
+        other_col = wp.float64(other_width) / wp.float64(2.0) + other_focal * q[0] / there
+        other_row = wp.float64(other_height) / wp.float64(2.0) - other_focal * q[1] / there
+        out[2 * slot] = wp.float32((other_col - col) * sign / gap)
+        out[2 * slot + 1] = wp.float32(-(other_row - row) * sign / gap)
+    else:
+        out[2 * slot] = 0.0
+        out[2 * slot + 1] = 0.0
+    motion_out[k] = out
