@@ -11,7 +11,7 @@ files takes the breakdown with every step waiting for the GPU (``DEEP_SSFR_SYNC_
 step then holding its own work.
 
     .venv/bin/python benchmarks/bench_render_stage.py [--size 1024] [--frames 8] [--device auto]
-                                                      [--background none|scene] [--no-motion]
+                                                      [--background none|scene] [--no-motion] [--orbit-deg 1]
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_dataset import _camera_for, _pbf_state  # noqa: E402
 
+from pipeline.camera import Camera, look_at  # noqa: E402
 from pipeline.config import load  # noqa: E402
 from pipeline.device import choose_device  # noqa: E402
 from pipeline.model import SHIPPED_WEIGHTS  # noqa: E402
@@ -41,22 +42,32 @@ from pipeline.timing import SYNC_ENV, Timings  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _orbit(camera: Camera, centre: np.ndarray, degrees: float) -> Camera:
+    """``camera`` turned by ``degrees`` about the vertical axis through ``centre``."""
+    a = np.radians(degrees)
+    turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    return Camera(look_at(centre + turn @ (camera.eye - centre), centre), camera.fov_y_deg, camera.width,
+                  camera.height)
+
+
 def loop(folder: Path, config, device: str, refiner, x: np.ndarray, v: np.ndarray, radius: float, frames: int,
-         write: bool) -> tuple[float, dict[str, float]]:
+         write: bool, orbit_deg: float = 0.0) -> tuple[float, dict[str, float]]:
     """Frames per second of the render loop over ``frames`` frames after one warm-up frame (the
-    writer drained at the end), and its per-step means (ms)."""
+    writer drained at the end), and its per-step means (ms); the camera turns ``orbit_deg`` a frame
+    about the fluid (0: it stays)."""
     p = config.render
-    camera = _camera_for(x, p.width)
+    start_camera, centre = _camera_for(x, p.width), (x.min(0) + x.max(0)) / 2
+    camera_at = lambda i: _orbit(start_camera, centre, orbit_deg * i)  # noqa: E731
     lo, hi = x.min(0), x.max(0)
     around = Surroundings(tuple(map(float, lo - 0.05)), tuple(map(float, hi + 0.05)))
     with SequenceRenderer(folder, "bench", around, config, device, refiner) as renderer:
         if not write:
             renderer.write = lambda *args, **kwargs: None
         load_frame = lambda f: (x, v)  # noqa: E731
-        renderer.render([0], load_frame, radius, lambda i: camera, videos=False)  # kernels built, caches warm
+        renderer.render([0], load_frame, radius, camera_at, videos=False)  # kernels built, caches warm
         renderer.timings = Timings()
         start = time.perf_counter()
-        renderer.render(list(range(1, frames + 1)), load_frame, radius, lambda i: camera, videos=False)
+        renderer.render(list(range(1, frames + 1)), load_frame, radius, camera_at, videos=False)
         rate = frames / (time.perf_counter() - start)
         return rate, renderer.timings.per_call_ms()
 
@@ -70,6 +81,8 @@ def main() -> None:
     parser.add_argument("--background", choices=("none", "scene"), default="none",
                         help="'scene' rasterises the floor and walls with pyrender (EGL on a headless GPU)")
     parser.add_argument("--no-motion", action="store_true", help="leave out the motion-vector pass")
+    parser.add_argument("--orbit-deg", type=float, default=0.0,
+                        help="degrees the camera turns a frame about the fluid (the camera's motion pass)")
     args = parser.parse_args()
     device = choose_device(args.device)
     wp.config.quiet = True
@@ -80,11 +93,13 @@ def main() -> None:
     x, v, r = _pbf_state(args.particles)
     where = "CUDA" if device == "cuda" else f"CPU, {torch.get_num_threads()} torch threads"
     print(f"device: {where}; {len(x):,} particles, {args.size} x {args.size}, refined ({refiner.splat} input), "
-          f"background {args.background}, motion vectors {'off' if args.no_motion else 'on'}; {args.frames} frames")
+          f"background {args.background}, motion vectors {'off' if args.no_motion else 'on'}, camera "
+          f"{f'turning {args.orbit_deg:g} degrees a frame' if args.orbit_deg else 'at rest'}; {args.frames} frames")
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for write in (False, True):
-            rate, steps = loop(Path(tmp) / str(write), config, device, refiner, x, v, r, args.frames, write)
+            rate, steps = loop(Path(tmp) / str(write), config, device, refiner, x, v, r, args.frames, write,
+                               args.orbit_deg)
             results[write] = (rate, steps)
             label = "with EXR + preview written" if write else "without writing files"
             print(f"{label:28s} {rate:6.2f} frames/s ({1000 / rate:7.1f} ms a frame)", flush=True)
@@ -93,7 +108,7 @@ def main() -> None:
     if device == "cuda":
         os.environ[SYNC_ENV] = "1"
         with tempfile.TemporaryDirectory() as tmp:
-            rate, steps = loop(Path(tmp), config, device, refiner, x, v, r, args.frames, False)
+            rate, steps = loop(Path(tmp), config, device, refiner, x, v, r, args.frames, False, args.orbit_deg)
         print(f"steps waiting for the GPU ({rate:.2f} frames/s so): "
               + ", ".join(f"{k} {v:.1f}" for k, v in steps.items()))
 
