@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from contextlib import AbstractContextManager, nullcontext
 
 ENV_VAR = "DEEP_SSFR_DEVICE"
 
@@ -58,3 +59,16 @@ def warp_waits_for_torch(device: str) -> None:
         import warp as wp
 
         wp.get_stream(device).wait_stream(wp.stream_from_torch(device))
+
+
+def on_torch_stream(device) -> AbstractContextManager:
+    """A ``with`` block in which Warp launches go on torch's current stream of ``device`` (a torch
+    device), so Warp kernels on torch's tensors are ordered with torch's own work without waits
+    between the streams (nothing to do on the CPU)."""
+    import torch
+    import warp as wp
+
+    device = torch.device(device)
+    if device.type != "cuda":
+        return nullcontext()
+    return wp.ScopedStream(wp.stream_from_torch(device))

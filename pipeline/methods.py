@@ -14,9 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
+from pipeline.device import on_torch_stream
 from pipeline.evaluate.metrics import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.metaball.inference import MetaballNet
@@ -25,6 +27,7 @@ from pipeline.model.inference import Refiner
 from pipeline.model.scale import resize_normal_map
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
+from pipeline.screen import kernels as K
 from pipeline.shading import Shader
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
@@ -308,12 +311,18 @@ RIM_FILL_STEPS = 16
 and still take its motion (beyond: 0)."""
 
 
+RING_NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1))
+"""The 8-neighbours in the order ``fill_rims`` asks them (the first covered one gives its value)."""
+
+
 def fill_rims(values, covered, wanted, steps: int | None = RIM_FILL_STEPS):
     """``values`` (H x W [x k]) with every ``wanted`` pixel that ``covered`` misses given a covered
     8-neighbour's value, ring by ring outwards from the covered pixels (the first covered neighbour
     in a fixed order), for at most ``steps`` rings (None: until no more can be reached); pixels
     further out keep their own. numpy arrays or torch tensors, the same values either way; a new
     array, or ``values`` itself when there is nothing to fill."""
+    if is_tensor(values):
+        return _fill_rims_on_device(values, covered, wanted, steps)
     x = xp(values)
     holes = x.argwhere(wanted & ~covered)
     if not len(holes) or not covered.any():
@@ -324,7 +333,7 @@ def fill_rims(values, covered, wanted, steps: int | None = RIM_FILL_STEPS):
     while steps is None or ring < steps:  # grow the covered pixels into the holes, one ring per step
         ring += 1
         filled = x.zeros_like(holes[:, 0], dtype=x.bool)
-        for dr, dc in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (1, -1), (-1, 1), (-1, -1)):
+        for dr, dc in RING_NEIGHBOURS:
             r, c = x.clip(holes[:, 0] + dr, 0, h - 1), x.clip(holes[:, 1] + dc, 0, w - 1)
             take = ~filled & covered[r, c]
             values[holes[take, 0], holes[take, 1]] = values[r[take], c[take]]
@@ -334,6 +343,35 @@ def fill_rims(values, covered, wanted, steps: int | None = RIM_FILL_STEPS):
         if not len(holes) or not filled.any():
             break
     return values
+
+
+def _fill_rims_on_device(values, covered, wanted, steps: int | None):
+    """``fill_rims`` on torch tensors, where they lie: two Warp passes a ring (``fill_ring``,
+    ``close_ring``) on torch's stream. The pixel list would make a GPU wait for the device at every
+    boolean index (some 500 waits a 1024 frame); this waits once a ring, for the count of pixels it
+    filled, to stop when a ring filled none."""
+    if values.dtype != torch.float32:
+        raise TypeError(f"fill_rims on tensors fills float32 maps, not {values.dtype}")
+    hole = wanted & ~covered
+    if not bool(hole.any()) or not bool(covered.any()):
+        return values
+    h, w = covered.shape
+    out = values.clone().contiguous()
+    covered_u8, hole_u8 = covered.to(torch.uint8).contiguous(), hole.to(torch.uint8).contiguous()
+    filled = torch.zeros_like(hole_u8)
+    count = torch.zeros(1, dtype=torch.int32, device=values.device)
+    arrays = [wp.from_torch(a) for a in (covered_u8, hole_u8, out.reshape(h, w, -1), filled, count)]
+    device = wp.device_from_torch(values.device)
+    ring = 0
+    while steps is None or ring < steps:
+        ring += 1
+        count.zero_()
+        with on_torch_stream(values.device):
+            wp.launch(K.fill_ring, (h, w), arrays, device=device)
+            wp.launch(K.close_ring, (h, w), [arrays[0], arrays[1], arrays[3]], device=device)
+        if int(count.item()) == 0:
+            break
+    return out
 
 
 def motion_pass(fluid_alpha: np.ndarray, fluid_motion: np.ndarray, covered: np.ndarray,

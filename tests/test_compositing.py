@@ -319,6 +319,35 @@ def test_particle_motion_of_tensors_is_the_host_motion():
         assert (got.numpy() == want).mean() > 0.999
 
 
+@pytest.mark.parametrize("steps", [None, 1, 3])
+def test_rim_fill_of_tensors_is_the_pixel_lists(steps):
+    """On tensors the rim fill runs as whole-image steps (a GPU would otherwise wait at every boolean
+    index): the same values as the pixel-list fill on numpy, bit for bit, for one-channel and
+    four-channel maps, holes at the border, fluid out of reach, and rings cut short by ``steps``."""
+    import torch
+    from scipy.ndimage import binary_dilation
+
+    from pipeline.methods import fill_rims
+
+    rng = np.random.default_rng(8)
+    covered = rng.random((40, 56)) < 0.04
+    covered = binary_dilation(covered, iterations=2) & (rng.random(covered.shape) < 0.8)
+    wanted = binary_dilation(covered, iterations=6)
+    wanted[:, :2] = True  # a strip at the border, partly out of reach
+    wanted[30:34, 50:54] = True
+    assert (wanted & ~covered).sum() > 300
+    for values in (rng.normal(size=covered.shape).astype(np.float32),
+                   rng.normal(size=(*covered.shape, 4)).astype(np.float32)):
+        want = fill_rims(values, covered, wanted, steps)
+        got = fill_rims(torch.from_numpy(values), torch.from_numpy(covered), torch.from_numpy(wanted), steps)
+        assert isinstance(got, torch.Tensor)
+        np.testing.assert_array_equal(got.numpy(), want)
+        changed = (want != values).reshape(*covered.shape, -1).any(-1)
+        assert changed.sum() > 50 and not changed[covered].any()
+        if steps == 1:
+            assert (wanted & ~covered & ~changed).sum() > 100, "one ring leaves the far holes"
+
+
 def test_the_motion_pass_on_the_device_is_the_host_pass(ss):
     """On a GPU the motion splat's maps stay torch tensors and the rim fill runs on them. On the
     CPU's tensors it must give the host pass bit for bit: rims several rings wide, holes at the

@@ -16,7 +16,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
-from pipeline.device import torch_waits_for_warp, warp_waits_for_torch
+from pipeline.device import on_torch_stream, torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
@@ -70,23 +70,12 @@ def nearest_fluid_pixels(fluid):
     site_row = torch.empty_like(rows)
     wp.init()
     on = wp.device_from_torch(device)
-    stream = wp.stream_from_torch(device) if on.is_cuda else None
-    with wp.ScopedStream(stream) if stream is not None else _no_scope():
+    with on_torch_stream(device):
         wp.launch(K.nearest_in_column, w, [wp.from_torch(fluid.to(torch.uint8).contiguous()), wp.from_torch(site_row)],
                   device=on)
         wp.launch(K.nearest_in_row, h, [wp.from_torch(site_row), wp.from_torch(envelope), wp.from_torch(rows),
                                        wp.from_torch(cols), wp.from_torch(distance)], device=on)
     return distance, rows, cols
-
-
-class _no_scope:
-    """A ``with`` block that does nothing (the CPU has no streams)."""
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: object) -> None:
-        return None
 
 
 class ScreenSpace:

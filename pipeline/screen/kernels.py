@@ -686,3 +686,62 @@ def static_motion(
         out[2 * slot] = 0.0
         out[2 * slot + 1] = 0.0
     motion_out[k] = out
+
+
+@wp.func
+def ring_neighbour(k: int) -> wp.vec2i:
+    """The k-th 8-neighbour offset (row, column) in ``pipeline.methods.RING_NEIGHBOURS``' order."""
+    if k == 0:
+        return wp.vec2i(0, 1)
+    if k == 1:
+        return wp.vec2i(0, -1)
+    if k == 2:
+        return wp.vec2i(1, 0)
+    if k == 3:
+        return wp.vec2i(-1, 0)
+    if k == 4:
+        return wp.vec2i(1, 1)
+    if k == 5:
+        return wp.vec2i(1, -1)
+    if k == 6:
+        return wp.vec2i(-1, 1)
+    return wp.vec2i(-1, -1)
+
+
+@wp.kernel
+def fill_ring(
+    covered: wp.array2d(dtype=wp.uint8),
+    hole: wp.array2d(dtype=wp.uint8),
+    values: wp.array3d(dtype=float),
+    filled: wp.array2d(dtype=wp.uint8),
+    count: wp.array(dtype=int),
+):
+    """One ring of ``pipeline.methods.fill_rims``: each hole pixel takes the values of its first
+    covered 8-neighbour (indices clipped at the border) and is marked ``filled``. Only covered
+    pixels are read and only holes written, so the ring is the same in any thread order."""
+    y, x = wp.tid()
+    if hole[y, x] == wp.uint8(0):
+        return
+    h = covered.shape[0]
+    w = covered.shape[1]
+    for k in range(8):
+        step = ring_neighbour(k)
+        r = wp.clamp(y + step[0], 0, h - 1)
+        c = wp.clamp(x + step[1], 0, w - 1)
+        if covered[r, c] != wp.uint8(0):
+            for j in range(values.shape[2]):
+                values[y, x, j] = values[r, c, j]
+            filled[y, x] = wp.uint8(1)
+            wp.atomic_add(count, 0, 1)
+            return
+
+
+@wp.kernel
+def close_ring(covered: wp.array2d(dtype=wp.uint8), hole: wp.array2d(dtype=wp.uint8),
+               filled: wp.array2d(dtype=wp.uint8)):
+    """After ``fill_ring``: the filled pixels count as covered for the next ring."""
+    y, x = wp.tid()
+    if filled[y, x] != wp.uint8(0):
+        covered[y, x] = wp.uint8(1)
+        hole[y, x] = wp.uint8(0)
+        filled[y, x] = wp.uint8(0)
