@@ -153,7 +153,7 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
         mask_t = refined_mask(n.movedim(0, -1), fluid, threshold, reach, lengths, nearest)
         out = torch.where(mask_t, n / lengths.clamp_min(1e-6), 0.0).permute(1, 2, 0).contiguous()
         out = out if tensors else out.cpu().numpy()
-        if is_tensor(fluid):  # the depth's own transform: whether its support is the fluid's is not asked
+        if is_tensor(fluid):  # the depth's own transform (asking if its support is the fluid's would wait)
             depth = host(extend_depth(blurred, mask_t))
             mask = mask_t.cpu().numpy()
         else:
@@ -355,6 +355,7 @@ def _fill_rims_on_device(values, covered, wanted, steps: int | None):
     hole = wanted & ~covered
     if not bool(hole.any()) or not bool(covered.any()):
         return values
+    wp.init()
     h, w = covered.shape
     out = values.clone().contiguous()
     covered_u8, hole_u8 = covered.to(torch.uint8).contiguous(), hole.to(torch.uint8).contiguous()

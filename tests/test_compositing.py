@@ -230,7 +230,8 @@ def _numpy_camera_motion(depth, camera, prev, nxt):
     return out
 
 
-def test_the_camera_motion_pass_reprojects_static_surfaces():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.cuda)])
+def test_the_camera_motion_pass_reprojects_static_surfaces(device):
     """The camera's motion of static surfaces (a Warp pass on the frame's device) is numpy's
     reprojection into the neighbouring cameras to rounding: frame gaps of 1 and 3, one neighbour
     or two, surfaces behind the next camera, empty (0) and infinite depths; on the CPU's tensors
@@ -247,7 +248,7 @@ def test_the_camera_motion_pass_reprojects_static_surfaces():
     depth = rng.uniform(0.5, 6.0, size).astype(np.float32)
     depth[:5] = 0.0
     depth[-4:, :10] = np.inf
-    launch = Launcher("cpu")
+    launch = Launcher(device)
     try:
         assert camera_motion(depth, cams[1], (cams[1], 1), None, launch) is None
         for prev, nxt in (((cams[0], 1), (cams[2], 3)), (None, (cams[2], 1)), ((cams[0], 3), None)):
@@ -255,9 +256,9 @@ def test_the_camera_motion_pass_reprojects_static_surfaces():
             got = camera_motion(depth, cams[1], prev, nxt, launch)
             np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-4)
             assert (got == want).mean() > 0.95 and np.abs(got).max() > 1.0
-            on_device = camera_motion(torch.from_numpy(depth), cams[1], prev, nxt, launch, on_device=True)
+            on_device = camera_motion(torch.from_numpy(depth).to(device), cams[1], prev, nxt, launch, on_device=True)
             assert isinstance(on_device, torch.Tensor)
-            np.testing.assert_array_equal(on_device.numpy(), got)
+            np.testing.assert_array_equal(on_device.cpu().numpy(), got)
         behind = _numpy_camera_motion(depth, cams[1], None, (cams[2], 1))[..., 2:]
         assert (np.isfinite(depth) & (depth > 0) & (behind == 0).all(-1)).sum() > 10, "some points behind"
     finally:
@@ -299,7 +300,8 @@ def test_motion_pass_fills_uncovered_rims_and_keeps_the_background():
     np.testing.assert_array_equal(out[visible == 0], 0.5)
 
 
-def test_particle_motion_of_tensors_is_the_host_motion():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
+def test_particle_motion_of_tensors_is_the_host_motion(device):
     """On a GPU each particle's motion is made by torch from the uploaded positions and velocities:
     the same float64 arithmetic as numpy's, so on the CPU's tensors the same numbers, with moving
     cameras, frame gaps, particles behind a camera and particles at rest."""
@@ -312,15 +314,17 @@ def test_particle_motion_of_tensors_is_the_host_motion():
     assert (cams[1].to_view(x.astype(np.float64))[:, 2] > 0).sum() > 100, "some particles behind the camera"
     for velocities, prev, nxt in ((v, (cams[0], 1), (cams[2], 2)), (None, None, None), (v, None, (cams[2], 1))):
         want = particle_motion(x, velocities, cams[1], FPS, prev, nxt)
-        got = particle_motion(torch.from_numpy(x), None if velocities is None else torch.from_numpy(velocities),
+        got = particle_motion(torch.from_numpy(x).to(device),
+                              None if velocities is None else torch.from_numpy(velocities).to(device),
                               cams[1], FPS, prev, nxt)
-        assert isinstance(got, torch.Tensor) and got.dtype == torch.float32
-        np.testing.assert_allclose(got.numpy(), want, rtol=1e-6, atol=1e-5)
-        assert (got.numpy() == want).mean() > 0.999
+        assert isinstance(got, torch.Tensor) and got.dtype == torch.float32 and got.device.type == device
+        np.testing.assert_allclose(got.cpu().numpy(), want, rtol=1e-6, atol=1e-5)
+        assert (got.cpu().numpy() == want).mean() > 0.999
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 @pytest.mark.parametrize("steps", [None, 1, 3])
-def test_rim_fill_of_tensors_is_the_pixel_lists(steps):
+def test_rim_fill_of_tensors_is_the_pixel_lists(steps, device):
     """On tensors the rim fill runs as whole-image steps (a GPU would otherwise wait at every boolean
     index): the same values as the pixel-list fill on numpy, bit for bit, for one-channel and
     four-channel maps, holes at the border, fluid out of reach, and rings cut short by ``steps``."""
@@ -339,9 +343,9 @@ def test_rim_fill_of_tensors_is_the_pixel_lists(steps):
     for values in (rng.normal(size=covered.shape).astype(np.float32),
                    rng.normal(size=(*covered.shape, 4)).astype(np.float32)):
         want = fill_rims(values, covered, wanted, steps)
-        got = fill_rims(torch.from_numpy(values), torch.from_numpy(covered), torch.from_numpy(wanted), steps)
+        got = fill_rims(*(torch.from_numpy(a).to(device) for a in (values, covered, wanted)), steps)
         assert isinstance(got, torch.Tensor)
-        np.testing.assert_array_equal(got.numpy(), want)
+        np.testing.assert_array_equal(got.cpu().numpy(), want)
         changed = (want != values).reshape(*covered.shape, -1).any(-1)
         assert changed.sum() > 50 and not changed[covered].any()
         if steps == 1:

@@ -17,7 +17,7 @@ from pipeline.camera import Camera
 from pipeline.device import torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
-from pipeline.vectors import is_tensor, xp
+from pipeline.vectors import as_float32, is_tensor, xp
 
 
 def _pixels(points_world, camera: Camera):
@@ -58,7 +58,7 @@ def particle_motion(positions, velocities, camera: Camera, fps: float, prev: tup
     ahead = _up(now - after) / gap_next
     out = m.concatenate([m.where((front & front_prev)[:, None], back, 0.0),
                          m.where((front & front_next)[:, None], ahead, 0.0)], axis=1)
-    return out.astype(np.float32) if m is np else out.to(m.float32)
+    return as_float32(out)
 
 
 def camera_motion(depth, camera: Camera, prev: tuple[Camera, int] | None, nxt: tuple[Camera, int] | None,
