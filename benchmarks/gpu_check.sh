@@ -7,12 +7,18 @@
 # costs only itself. After `source .gpu/py/boot.sh` (../shared/gpu/README.md), from the repo root:
 #
 #     bash benchmarks/gpu_check.sh            # OUT defaults to $OUT (the device tool's) or /tmp/gpu_check
+#     bash benchmarks/gpu_check.sh taichi     # only the steps named (gpu cuda_tests sim sim_stage dataset
+#                                             # dataset_stage render render_stage taichi)
 #
 # GPU_CHECK_DEVICE=cpu runs the same steps on the CPU (a dry run of the script; minutes longer).
 #
-# Stage Taichi with the rest (GPU_EXTRA_WHEELS=taichi==1.7.4 bash ../shared/gpu/stage.sh) for the
-# side-by-side step; it is skipped without it. The nccl path of `make train-ddp` needs one GPU per
-# process, so a one-GPU machine cannot run it (a world of one process makes no process group).
+# Taichi for the side-by-side step does not fit in the second call: its wheel (56 MB) and the
+# second half of Warp's (49 MB) pass the 64 MiB a call may carry. Stage it apart
+# (`bash benchmarks/gpu_stage_taichi.sh`: .gpu/t, 58 MB) and, while the machine is still warm after
+# the second call, make a third: `export PYTHONPATH=/tmp/gpu/site:$PWD DEEP_SSFR_DEVICE=cuda &&
+# bash benchmarks/gpu_check.sh taichi` carrying [".gpu/t"]; the step installs the wheels first. The
+# step is skipped without them. The nccl path of `make train-ddp` needs one GPU per process, so a
+# one-GPU machine cannot run it (a world of one process makes no process group).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_check}
 PY=${PYTHON:-python3}
@@ -20,9 +26,11 @@ DEVICE=${GPU_CHECK_DEVICE:-cuda}
 mkdir -p "$OUT"
 export DEEP_SSFR_DEVICE=$DEVICE PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 
-step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output
+ONLY=" $* "
+step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output (only those named, if any)
     local name=$1 limit=$2
     shift 2
+    [ "$ONLY" = "  " ] || [[ "$ONLY" == *" $name "* ]] || return 0
     local start=$SECONDS
     timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
     local rc=$?
@@ -41,9 +49,14 @@ step dataset_stage 60 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frame
 # each holds its own work; bench_render_stage's frames/s keep the overlap (its last line: the steps)
 step render 60 env DEEP_SSFR_SYNC_TIMINGS=1 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 1024 --splat ellipsoid --repeat 10
 step render_stage 50 "$PY" benchmarks/bench_render_stage.py --device "$DEVICE" --size 1024 --frames 30
-if "$PY" -c "import taichi" 2>/dev/null; then
-    step taichi 90 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
-else
-    echo "taichi             skipped: no taichi here (stage it with GPU_EXTRA_WHEELS=taichi==1.7.4)"
+if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
+    if ls .gpu/t/*.whl >/dev/null 2>&1 && ! "$PY" -c "import taichi" 2>/dev/null; then  # the third call's wheels
+        "$PY" -m pip install -q --no-index --no-deps --no-compile --target "${GPU_SITE:-/tmp/gpu/site}" .gpu/t/*.whl
+    fi
+    if "$PY" -c "import taichi" 2>/dev/null; then
+        step taichi 90 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
+    else
+        echo "taichi             skipped: no taichi here (bash benchmarks/gpu_stage_taichi.sh, then a third call)"
+    fi
 fi
 echo "outputs in $OUT"
