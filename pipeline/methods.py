@@ -31,7 +31,7 @@ from pipeline.screen import kernels as K
 from pipeline.shading import Shader
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
 from pipeline.timing import Timings
-from pipeline.vectors import host, is_tensor, length, xp
+from pipeline.vectors import as_float32, host, is_tensor, length, xp
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
@@ -124,8 +124,8 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     ``timings`` gets 'prepare', 'network' and 'post'. The input is made ``on_device`` (default: when
     the refiner is not on the CPU): its five maps go there once and become the input in torch, to
     within 5e-5 of numpy's (tested); on the CPU numpy makes it, as in training. The channels may be
-    torch tensors on the device already (``ScreenSpace.inputs(on_device=True)``): the normals then
-    stay a tensor there, for the shader; the mask and depth come to the host either way.
+    torch tensors on the device already (``ScreenSpace.inputs(on_device=True)``): the normals, mask
+    and depth then stay tensors there, for the shader, and nothing waits for the network here.
     """
     t = timings or Timings()
     names = input_channels(refiner.splat)
@@ -154,8 +154,9 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
         out = torch.where(mask_t, n / lengths.clamp_min(1e-6), 0.0).permute(1, 2, 0).contiguous()
         out = out if tensors else out.cpu().numpy()
         if is_tensor(fluid):  # the depth's own transform (asking if its support is the fluid's would wait)
-            depth = host(extend_depth(blurred, mask_t))
-            mask = mask_t.cpu().numpy()
+            depth, mask = extend_depth(blurred, mask_t), mask_t
+            if not tensors:
+                depth, mask = host(depth), host(mask)
         else:
             mask = mask_t.cpu().numpy()
             if nearest is not None and np.array_equal(blurred > 0, fluid):
@@ -273,7 +274,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method == "refined":
         with t("refiner"):
             n, mask, depth = refine(refiner, ch, threshold, camera.focal_px, radius, t, on_device)
-        return {"normals": n, "depth": depth, "mask": mask.astype(np.float32),
+        return {"normals": n, "depth": depth, "mask": as_float32(mask),
                 "thickness": ch[input_channels(refiner.splat).thickness]}
     return method_maps(method, ch)
 
@@ -300,9 +301,8 @@ def shading_thickness(thickness, mask):
     without this the image cut every such silhouette back to the splat's while the Mask pass kept
     it (4-13% of the refined mask in the demo's frames). A tensor stays one, on its device, and
     comes back as it was when there is nothing to fill."""
-    inside = host(mask) > 0
-    if is_tensor(thickness):
-        inside = torch.as_tensor(inside, device=thickness.device)
+    inside = mask > 0
+    inside = torch.as_tensor(inside, device=thickness.device) if is_tensor(thickness) else host(inside)
     return fill_rims(thickness, thickness > 0, inside, steps=None)
 
 

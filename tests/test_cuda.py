@@ -186,7 +186,7 @@ def test_the_refined_frame_stays_on_the_gpu_and_shades_as_the_host_frame():
         for on_device in (True, False):
             src = normal_source("refined", x, 0.004, cam, DatasetConfig(), ss, launch, refiner, on_device=on_device)
             if on_device and refiner.splat == "ellipsoid":
-                assert isinstance(src["normals"], torch.Tensor) and src["normals"].is_cuda
+                assert all(isinstance(src[k], torch.Tensor) and src[k].is_cuda for k in ("normals", "mask", "depth"))
             frames[on_device] = shade_frame(src, bg, bg_depth, cam, rp, shader)
         dev, host = frames[True], frames[False]
         assert host.mask.sum() > 1000
