@@ -4,7 +4,9 @@
 # render benchmarks on CUDA, the dataset stage's views/s at 512, the render stage's frames/s at
 # 1024, and Taichi side by side on the same GPU when its wheel came along.
 # Each step writes OUT/<step>.txt and prints its exit status and last line, so one failing step
-# costs only itself. After `source .gpu/py/boot.sh` (../shared/gpu/README.md), from the repo root:
+# costs only itself. Stage what the machine lacks first (`bash benchmarks/gpu_stage.sh`: Warp, the
+# wheels its image lacks, Taichi apart) and make the calls its header lists; from the repo root
+# there:
 #
 #     bash benchmarks/gpu_check.sh            # OUT defaults to $OUT (the device tool's) or /tmp/gpu_check
 #     bash benchmarks/gpu_check.sh taichi     # only the steps named (gpu cuda_tests sim sim_stage dataset
@@ -12,13 +14,10 @@
 #
 # GPU_CHECK_DEVICE=cpu runs the same steps on the CPU (a dry run of the script; minutes longer).
 #
-# Taichi for the side-by-side step does not fit in the second call: its wheel (56 MB) and the
-# second half of Warp's (49 MB) pass the 64 MiB a call may carry. Stage it apart
-# (`bash benchmarks/gpu_stage_taichi.sh`: .gpu/t, 58 MB) and, while the machine is still warm after
-# the second call, make a third: `export PYTHONPATH=/tmp/gpu/site:$PWD DEEP_SSFR_DEVICE=cuda &&
-# bash benchmarks/gpu_check.sh taichi` carrying [".gpu/t"]; the step installs the wheels first. The
-# step is skipped without them. The nccl path of `make train-ddp` needs one GPU per process, so a
-# one-GPU machine cannot run it (a world of one process makes no process group).
+# Taichi's step runs in a third call of its own (its wheel and the second half of Warp's pass the
+# 64 MiB a call may carry); the step installs the carried wheels (.gpu/t) first and is skipped
+# without them. The nccl path of `make train-ddp` needs one GPU per process, so a one-GPU machine
+# cannot run it (a world of one process makes no process group).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_check}
 PY=${PYTHON:-python3}
@@ -56,7 +55,7 @@ if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
     if "$PY" -c "import taichi" 2>/dev/null; then
         step taichi 90 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
     else
-        echo "taichi             skipped: no taichi here (bash benchmarks/gpu_stage_taichi.sh, then a third call)"
+        echo "taichi             skipped: no taichi here (bash benchmarks/gpu_stage.sh, then a third call)"
     fi
 fi
 echo "outputs in $OUT"
