@@ -207,3 +207,37 @@ def test_the_refined_frame_stays_on_the_gpu_and_shades_as_the_host_frame():
         assert np.percentile(angle, 99) < 0.5, seed
     for closer in (ss, launch, shader):
         closer.close()
+
+
+def test_a_gpu_frames_downloads_land_in_page_locked_memory():
+    """What a GPU frame brings to the host (the shaded passes, the sky, a tensor through ``host``)
+    comes down into page-locked memory, the copy at the bus's speed, holding what the device made:
+    the sky as the CPU's to rounding, the tensor exactly."""
+    import torch
+
+    from pipeline.config import RenderConfig
+    from pipeline.shading import Shader
+    from pipeline.vectors import host
+
+    t = torch.arange(24, dtype=torch.float32, device="cuda").reshape(4, 6)
+    a = host(t)
+    assert torch.from_numpy(a).is_pinned()
+    np.testing.assert_array_equal(a, np.arange(24, dtype=np.float32).reshape(4, 6))
+    cam = Camera(look_at((0.0, 0.3, 1.0), (0.0, 0.0, 0.0)), 45.0, 48, 32)
+    bg, bg_depth = np.full((32, 48, 3), 0.25, np.float32), np.zeros((32, 48), np.float32)
+    bg_depth[16:] = 2.0
+    p = RenderConfig(width=48, height=32)
+    skies = {}
+    for device in ("cuda:0", "cpu"):
+        shader = Shader(device)
+        skies[device] = shader.fill_sky(bg, bg_depth, cam, p)
+        if device != "cpu":
+            assert torch.from_numpy(skies[device]).is_pinned()
+            n = np.zeros((32, 48, 3), np.float32)
+            n[..., 2] = 1.0
+            d, m = np.full((32, 48), 1.5, np.float32), np.ones((32, 48), np.float32)
+            out = shader.shade(n, d, np.full((32, 48), 0.01, np.float32), m, skies[device], bg_depth, cam, p)
+            assert all(torch.from_numpy(x).is_pinned() for x in (out.beauty, out.fluid, out.depth, out.normals_view))
+            assert out.fluid[..., 3].min() > 0
+        shader.close()
+    np.testing.assert_allclose(skies["cuda:0"], skies["cpu"], atol=1e-5)

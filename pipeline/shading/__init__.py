@@ -13,7 +13,7 @@ from pipeline.config import RenderConfig
 from pipeline.device import torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.shading import kernels as K
-from pipeline.vectors import is_tensor
+from pipeline.vectors import host_empty, is_tensor
 
 
 def fresnel_f0(ior: float) -> float:
@@ -49,6 +49,7 @@ class Shader:
     def __init__(self, device: str = "cpu", threads: int = 0, environment: np.ndarray | None = None):
         self.device = device
         self._cpu = not str(device).startswith("cuda")
+        self._pinned = not self._cpu  # a GPU's passes come down into page-locked memory (vectors.pinned_empty)
         self.launch = Launcher(device, threads, min_chunk=4096)
         env = environment if environment is not None else np.zeros((1, 1, 3), np.float32)
         self.use_env_map = int(environment is not None)
@@ -99,8 +100,9 @@ class Shader:
         light_world = np.asarray(p.light_dir, np.float64)
         light_world /= np.linalg.norm(light_world)
         light_view = camera.view[:3, :3] @ light_world
-        out = ShadedPasses(*(np.empty((h, w, 4), np.float32) for _ in range(2)), np.empty((h, w), np.float32),
-                           *(np.empty((h, w, 3), np.float32) for _ in range(2)))
+        pinned = self._pinned
+        out = ShadedPasses(*(host_empty((h, w, 4), pinned) for _ in range(2)), host_empty((h, w), pinned),
+                           *(host_empty((h, w, 3), pinned) for _ in range(2)))
         dev = [self._output(out.beauty, wp.vec4), self._output(out.fluid, wp.vec4), self._output(out.depth, float),
                self._output(out.normals_view, wp.vec3), self._output(out.normals_world, wp.vec3)]
         rot = camera.cam_to_world[:3, :3].astype(np.float32)
@@ -125,7 +127,7 @@ class Shader:
         h, w = background_depth.shape
         sun = np.asarray(p.light_dir, np.float64)
         sun /= np.linalg.norm(sun)
-        sky = np.empty((h, w, 3), np.float32)
+        sky = host_empty((h, w, 3), self._pinned and not on_device)
         out = self._output(sky, wp.vec3)
         rot = camera.cam_to_world[:3, :3].astype(np.float32)
         self.launch(K.fill_sky, h * w, [
