@@ -72,3 +72,25 @@ def on_torch_stream(device) -> AbstractContextManager:
     if device.type != "cuda":
         return nullcontext()
     return wp.ScopedStream(wp.stream_from_torch(device))
+
+
+def host_view(host, dtype):
+    """A host array's pixels as a flat CPU Warp array of ``dtype`` (a scalar or a vector type), no copy:
+    where a kernel on the CPU writes, or where a copy from a GPU lands."""
+    import warp as wp
+
+    length = wp.types.type_size(dtype)
+    flat = host.reshape(-1) if length == 1 else host.reshape(-1, length)
+    return wp.array(flat, dtype=dtype, device="cpu", copy=False)
+
+
+def download(a, shape: tuple[int, ...]):
+    """A GPU array of float pixels (``float`` or a float vector type) in a new page-locked host array
+    of ``shape`` (``vectors.host_empty``): one copy at the bus's speed."""
+    import warp as wp
+
+    from pipeline.vectors import host_empty
+
+    out = host_empty(shape, pinned=True)
+    wp.copy(host_view(out, a.dtype), a)
+    return out

@@ -34,6 +34,9 @@ def test_screen_space_inputs_on_the_gpu_equal_the_cpu():
         ss.close()
     cpu, gpu = out["cpu"], out["cuda:0"]
     assert set(cpu) == set(gpu)
+    import torch
+
+    assert all(torch.from_numpy(a).is_pinned() for a in gpu.values()), "downloaded into page-locked memory"
     np.testing.assert_array_equal(cpu["A"], gpu["A"])
     for key in ("Z", "bilateral.Z", "nrf.Z"):
         np.testing.assert_allclose(gpu[key], cpu[key], atol=1e-5, err_msg=key)

@@ -16,7 +16,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
-from pipeline.device import on_torch_stream, torch_waits_for_warp, warp_waits_for_torch
+from pipeline.device import download, on_torch_stream, torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
@@ -106,10 +106,10 @@ class ScreenSpace:
 
     @staticmethod
     def _download(a: wp.array, shape: tuple[int, ...]) -> np.ndarray:
-        """The buffer's pixels as a host array of their own: on a GPU ``numpy()`` copies them out
-        already; on the CPU it is a view of the buffer, which the next frame overwrites."""
-        out = a.numpy().reshape(shape)
-        return out if a.device.is_cuda else out.copy()
+        """The buffer's pixels as a host array of their own: from a GPU one copy into page-locked
+        memory (``pipeline.device.download``); on the CPU a copy of the buffer, which the next frame
+        overwrites."""
+        return download(a, shape) if a.device.is_cuda else a.numpy().reshape(shape).copy()
 
     def _take(self, a: wp.array, shape: tuple[int, ...], on_device: bool):
         """The buffer's pixels as a host array (``_download``) or, ``on_device``, as a torch tensor

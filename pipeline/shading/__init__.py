@@ -10,7 +10,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import RenderConfig
-from pipeline.device import torch_waits_for_warp, warp_waits_for_torch
+from pipeline.device import host_view, torch_waits_for_warp, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.shading import kernels as K
 from pipeline.vectors import host_empty, is_tensor
@@ -68,23 +68,17 @@ class Shader:
         a = a.reshape(-1, 3) if dtype is wp.vec3 else a.ravel()
         return wp.array(a, dtype=dtype, device=self.device, copy=not self._cpu)
 
-    @staticmethod
-    def _host_view(host: np.ndarray, dtype) -> wp.array:
-        """``host``'s pixels as a flat CPU Warp array of ``dtype`` (no copy)."""
-        flat = host.reshape(-1) if dtype is float else host.reshape(-1, host.shape[-1])
-        return wp.array(flat, dtype=dtype, device="cpu", copy=False)
-
     def _output(self, host: np.ndarray, dtype) -> wp.array:
         """Where a kernel writes ``host``'s pixels: ``host`` itself on the CPU, a device array on a GPU."""
         if self._cpu:
-            return self._host_view(host, dtype)
+            return host_view(host, dtype)
         return wp.empty(host.shape[0] * host.shape[1], dtype=dtype, device=self.device)
 
     def _result(self, out: wp.array, host: np.ndarray) -> np.ndarray:
         """``host`` holding the kernel's output: on a GPU copied straight into it (one copy, not a
         download and a second copy; the copy to pageable memory returns when it is done)."""
         if not self._cpu:
-            wp.copy(self._host_view(host, out.dtype), out)
+            wp.copy(host_view(host, out.dtype), out)
         return host
 
     def shade(self, normals: np.ndarray, depth: np.ndarray, thickness: np.ndarray, mask: np.ndarray,
