@@ -19,14 +19,12 @@ the per-step costs of the whole run.
 from __future__ import annotations
 
 import argparse
-import io
-import logging
-import re
 import tempfile
 from pathlib import Path
 
 import warp as wp
 import yaml
+from stage_runs import logged_summary, scratch_config
 
 from pipeline.device import choose_device
 from stages import cli
@@ -43,12 +41,9 @@ def main() -> None:
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     with tempfile.TemporaryDirectory() as tmp:
-        body = yaml.safe_load(Path(args.config).read_text())
-        body.update(data_dir=tmp, scene_dir=str(Path(args.config).resolve().parent / body.get("scene_dir", "scenes")))
-        body.setdefault("simulate", {})["frames"] = args.frames
-        body.setdefault("dataset", {}).update(width=args.size, height=args.size, frame_stride=1, random_views=0)
-        config = Path(tmp) / "config.yaml"
-        config.write_text(yaml.safe_dump(body))
+        config = scratch_config(args.config, Path(tmp), simulate={"frames": args.frames},
+                                dataset={"width": args.size, "height": args.size, "frame_stride": 1,
+                                         "random_views": 0})
         assert cli.main(["simulate", "--config", str(config), "--scene", args.scene]) == 0
         runs = [_run(config, args.scene, max_frames) for max_frames in (args.frames // 2, 0)]
     (half_views, half_wall, _), (views, wall, steps) = runs
@@ -66,18 +61,8 @@ def _run(config: Path, scene: str, max_frames: int) -> tuple[int, float, str]:
     body = yaml.safe_load(config.read_text())
     body["dataset"]["max_frames"] = max_frames
     config.write_text(yaml.safe_dump(body))
-    stream = io.StringIO()
-    handler = logging.StreamHandler(stream)
-    logging.getLogger("deep_ssfr").addHandler(handler)
-    try:
-        assert cli.main(["dataset", "--config", str(config), "--scene", scene]) == 0
-    finally:
-        logging.getLogger("deep_ssfr").removeHandler(handler)
-    found = re.search(r"dataset \S+: (\d+) EXR files in ([\d.]+) s \(([^)]*)\)", stream.getvalue())
-    if found is None:
-        raise SystemExit(f"bench_dataset_stage: the dataset stage logged no summary:\n{stream.getvalue()}")
+    found = logged_summary("dataset", config, scene, r"dataset \S+: (\d+) EXR files in ([\d.]+) s \(([^)]*)\)")
     return int(found.group(1)), float(found.group(2)), found.group(3)
-
 
 if __name__ == "__main__":
     main()

@@ -16,20 +16,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import io
-import logging
-import re
 import tempfile
 import time
 from pathlib import Path
 
 import warp as wp
-import yaml
+from stage_runs import logged_summary, scratch_config
 
 from pipeline.config import load
 from pipeline.device import choose_device, warp_device
 from pipeline.sim.pbf import PBFSolver
-from stages import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -79,28 +75,11 @@ def main() -> None:
 
 def _stage(data_dir: Path, args: argparse.Namespace, frames: int) -> tuple[int, float]:
     """The simulate stage for ``frames`` frames into an empty cache: its steps and wall seconds."""
-    data_dir.mkdir(parents=True)
-    body = yaml.safe_load(Path(args.config).read_text())
-    body.update(data_dir=str(data_dir),
-                scene_dir=str(Path(args.config).resolve().parent / body.get("scene_dir", "scenes")))
-    body.setdefault("simulate", {})["frames"] = frames
-    if args.particle_radius:
-        body["simulate"]["particle_radius"] = args.particle_radius
-    config = data_dir / "config.yaml"
-    config.write_text(yaml.safe_dump(body))
-    stream = io.StringIO()
-    handler = logging.StreamHandler(stream)
-    logging.getLogger("deep_ssfr").addHandler(handler)
-    try:
-        assert cli.main(["simulate", "--config", str(config), "--scene", args.scene]) == 0
-    finally:
-        logging.getLogger("deep_ssfr").removeHandler(handler)
-    found = re.search(r"s wall, ([\d.]+) steps/s", stream.getvalue())
-    if found is None:
-        raise SystemExit(f"bench_sim_stage: the simulate stage logged no summary:\n{stream.getvalue()}")
+    keys = {"frames": frames, **({"particle_radius": args.particle_radius} if args.particle_radius else {})}
+    config = scratch_config(args.config, data_dir, simulate=keys)
+    rate = float(logged_summary("simulate", config, args.scene, r"s wall, ([\d.]+) steps/s").group(1))
     steps = frames * load(config, only_scene=args.scene).config.simulate.substeps
-    return steps, steps / float(found.group(1))  # the logged rate has more digits than the wall
-
+    return steps, steps / rate  # the logged rate has more digits than the wall
 
 if __name__ == "__main__":
     main()
