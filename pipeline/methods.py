@@ -138,9 +138,9 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
         fluid, blurred = channels[names.fluid] > 0, channels[names.blurred]
     with t("prepare"):
         source = channels
-        if device_way:
-            source = {c: torch.as_tensor(channels[c], device=refiner.device)
-                      for c in (*names.normal, names.raw, names.blurred)}
+        if device_way:  # the filtered depth is on the device already (above)
+            source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in (*names.normal, names.raw)}
+            source[names.blurred] = blurred
         view = prepare(source, refiner.spec, focal_px, radius)
     with t("network"):
         n = refiner.run(view.inputs, view.fluid)  # 3 x h x w, on the refiner's device (queued on a GPU)
