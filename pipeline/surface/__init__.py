@@ -180,18 +180,19 @@ def marching_cubes(grid: np.ndarray | wp.array, level: float, cell: float, origi
     'warp' (``warp.geometry.IsoSurfaceMarchingCubes``: kernels on the grid's device, no copy to
     the host on a GPU) or 'auto' (warp on CUDA, skimage on the CPU)."""
     use_warp = backend == "warp" or (backend == "auto" and str(device).startswith("cuda"))
-    if not use_warp:
-        values = grid.numpy() if isinstance(grid, wp.array) else grid
-        if values.max() <= level:  # scikit-image refuses a level outside the grid's range
-            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
-        verts, faces, _, _ = measure.marching_cubes(values, level=level, spacing=(cell, cell, cell),
-                                                    allow_degenerate=False)
-        return (verts + origin).astype(np.float32), faces.astype(np.int32)
+    if use_warp and isinstance(grid, wp.array) and grid.device == wp.get_device(device):
+        field = grid  # read where it lies
+    else:
+        values = np.ascontiguousarray(grid.numpy() if isinstance(grid, wp.array) else grid, np.float32)
+        if not use_warp:
+            if values.max() <= level:  # scikit-image refuses a level outside the grid's range
+                return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+            verts, faces, _, _ = measure.marching_cubes(values, level=level, spacing=(cell, cell, cell),
+                                                        allow_degenerate=False)
+            return (verts + origin).astype(np.float32), faces.astype(np.int32)
+        field = wp.array(values, dtype=float, device=device)
     from warp.geometry import IsoSurfaceMarchingCubes
 
-    field = grid if isinstance(grid, wp.array) and str(grid.device) == str(wp.get_device(device)) else \
-        wp.array(np.ascontiguousarray(grid.numpy() if isinstance(grid, wp.array) else grid, np.float32),
-                 dtype=float, device=device)
     upper = origin + cell * (np.asarray(field.shape) - 1)
     verts, tris = IsoSurfaceMarchingCubes.extract(field, level, lower=wp.vec3(*origin), upper=wp.vec3(*upper))
     return verts.numpy().astype(np.float32), tris.numpy().reshape(-1, 3).astype(np.int32)
