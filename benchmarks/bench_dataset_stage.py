@@ -10,10 +10,12 @@ second half's views over the extra wall time: what the stage keeps up once runni
 fixed costs (loading the kernels, the first frame's warm-up, the manifest), which on a GPU are
 much of a short run (the later frames of a dam break are more spread out, so on the CPU, where
 the fixed costs are small, the second half runs a little slower than the whole); before them,
-the per-step costs of the whole run.
+the per-step costs of the whole run. ``--trace DIR`` records a third run, on the first
+``--trace-frames`` frames, with torch's profiler (``pipeline.profiling``, its figures per view; the
+run's kernel loads and first frame included) and prints and saves its summary with the trace.
 
     .venv/bin/python benchmarks/bench_dataset_stage.py [--config configs/default.yaml] [--scene dam_break]
-                                                       [--size 512] [--frames 16]
+                                                       [--size 512] [--frames 16] [--trace DIR] [--trace-frames 2]
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import yaml
 from stage_runs import logged_summary, scratch_config
 
 from pipeline.device import choose_device
+from pipeline.profiling import Trace, profiled
 from stages import cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,6 +41,9 @@ def main() -> None:
     parser.add_argument("--scene", default="dam_break")
     parser.add_argument("--size", type=int, default=512, help="width and height of every view (px)")
     parser.add_argument("--frames", type=int, default=16, help="frames of the simulation made into views")
+    parser.add_argument("--trace", type=Path, help="record a run with torch's profiler; its trace and summary go "
+                                                   "into this folder as dataset_stage.*")
+    parser.add_argument("--trace-frames", type=int, default=2, help="frames of the recorded run")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     with tempfile.TemporaryDirectory() as tmp:
@@ -46,7 +52,8 @@ def main() -> None:
                                          "random_views": 0})
         assert cli.main(["simulate", "--config", str(config), "--scene", args.scene]) == 0
         runs = [_run(config, args.scene, max_frames) for max_frames in (args.frames // 2, 0)]
-    (half_views, half_wall, _), (views, wall, steps) = runs
+        traced = _run(config, args.scene, args.trace_frames, record=True)[3] if args.trace else None
+    (half_views, half_wall, _, _), (views, wall, steps, _) = runs
     print(f"{args.scene}: views at {args.size}x{args.size} on {choose_device()}")
     print(f"  per call (all)    {steps}")
     print(f"  dataset stage     {half_views / half_wall:8.2f} views/s  ({half_views} views, {half_wall:.1f} s)")
@@ -54,15 +61,23 @@ def main() -> None:
     if views > half_views and wall > half_wall:
         print(f"  second half       {(views - half_views) / (wall - half_wall):8.2f} views/s  (frames "
               f"{args.frames // 2 + 1}-{args.frames}: their views over the extra wall time, the fixed costs cancel)")
+    if traced is not None:
+        print(f"recorded with the profiler ({args.trace_frames} frames, the run's fixed costs and the profiler's "
+              "own included):")
+        print(traced.summary())
+        print("saved: " + ", ".join(map(str, traced.save(args.trace))))
 
 
-def _run(config: Path, scene: str, max_frames: int) -> tuple[int, float, str]:
-    """The dataset stage on the first ``max_frames`` frames (0: all): its views, wall seconds and steps."""
+def _run(config: Path, scene: str, max_frames: int, record: bool = False) -> tuple[int, float, str, Trace]:
+    """The dataset stage on the first ``max_frames`` frames (0: all): its views, wall seconds and
+    steps, and with ``record`` the profiler's trace of it (empty without)."""
     body = yaml.safe_load(config.read_text())
     body["dataset"]["max_frames"] = max_frames
     config.write_text(yaml.safe_dump(body))
-    found = logged_summary("dataset", config, scene, r"dataset \S+: (\d+) EXR files in ([\d.]+) s \(([^)]*)\)")
-    return int(found.group(1)), float(found.group(2)), found.group(3)
+    with profiled("dataset_stage", unit="view", enabled=record) as trace:
+        found = logged_summary("dataset", config, scene, r"dataset \S+: (\d+) EXR files in ([\d.]+) s \(([^)]*)\)")
+    trace.units = int(found.group(1))
+    return int(found.group(1)), float(found.group(2)), found.group(3), trace
 
 if __name__ == "__main__":
     main()

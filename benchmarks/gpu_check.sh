@@ -3,8 +3,14 @@
 # the cuda-marked tests, the simulator against its own stage at 50k particles, the dataset and
 # render benchmarks on CUDA, the dataset stage's views/s at 512, the render stage's frames/s at
 # 1024, and Taichi side by side on the same GPU when its wheel came along.
-# Each step writes OUT/<step>.txt and prints its exit status and last line, so one failing step
-# costs only itself. Stage what the machine lacks first (`bash benchmarks/gpu_stage.sh`: Warp, the
+# Each step writes its log and prints its exit status and last line, so one failing step costs
+# only itself. The stage benchmarks also record a short run with torch's profiler
+# (pipeline/profiling.py): the trace and its summary (the device's busy share and idle gaps, the
+# host's waits, the copies, device time by step, the costliest kernels), for reading where the time
+# went once the machine is gone. The device tool brings back at most 8 files, so after every step
+# the logs and traces are packed into OUT/gpu_check.tgz, and the step lines go to OUT/summary.txt
+# (`tar xzf gpu_check.tgz` gives <step>.txt and traces/; `python -m pipeline.profiling
+# traces/render_stage.trace.json.gz` reads a trace again). Stage what the machine lacks first (`bash benchmarks/gpu_stage.sh`: Warp, the
 # wheels its image lacks, Taichi apart) and make the calls its header lists; from the repo root
 # there:
 #
@@ -20,9 +26,10 @@
 # cannot run it (a world of one process makes no process group).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_check}
+WORK=${GPU_CHECK_WORK:-/tmp/gpu_check_work}  # the logs and traces, packed into OUT after each step
 PY=${PYTHON:-python3}
 DEVICE=${GPU_CHECK_DEVICE:-cuda}
-mkdir -p "$OUT"
+mkdir -p "$OUT" "$WORK/traces"
 export DEEP_SSFR_DEVICE=$DEVICE PYOPENGL_PLATFORM=${PYOPENGL_PLATFORM:-egl}
 
 ONLY=" $* "
@@ -31,23 +38,28 @@ step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output
     shift 2
     [ "$ONLY" = "  " ] || [[ "$ONLY" == *" $name "* ]] || return 0
     local start=$SECONDS
-    timeout "$limit" "$@" >"$OUT/$name.txt" 2>&1
+    timeout "$limit" "$@" >"$WORK/$name.txt" 2>&1
     local rc=$?
-    printf '%-18s exit %3d  %4d s  %s\n' "$name" "$rc" $((SECONDS - start)) "$(tail -n 1 "$OUT/$name.txt")"
+    printf '%-18s exit %3d  %4d s  %s\n' "$name" "$rc" $((SECONDS - start)) "$(tail -n 1 "$WORK/$name.txt")" \
+        | tee -a "$OUT/summary.txt"
+    tar -czf "$OUT/.gpu_check.tgz.tmp" -C "$WORK" . && mv "$OUT/.gpu_check.tgz.tmp" "$OUT/gpu_check.tgz"
 }
+TRACES=$WORK/traces
 
 # the limits add up to under the device tool's 10 minutes a command; the cuda tests come first, so
 # their compilation of every kernel module for the GPU is cached for the later steps
 step gpu 10 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
 step cuda_tests 120 "$PY" -m pytest -q -m cuda -p no:cacheprovider tests
 step sim 45 "$PY" benchmarks/bench_sim.py --device "$DEVICE" --particles 50000 --steps 400
-step sim_stage 75 "$PY" benchmarks/bench_sim_stage.py --particle-radius 0.00888
+step sim_stage 85 "$PY" benchmarks/bench_sim_stage.py --particle-radius 0.00888 --trace "$TRACES"
 step dataset 70 "$PY" benchmarks/bench_dataset.py --device "$DEVICE"
-step dataset_stage 60 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frames 16
+step dataset_stage 70 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frames 16 --trace "$TRACES"
 # bench_render's per-stage columns with every step waiting for the GPU (DEEP_SSFR_SYNC_TIMINGS), so
-# each holds its own work; bench_render_stage's frames/s keep the overlap (its last line: the steps)
+# each holds its own work; bench_render_stage's frames/s keep the overlap (its last line: where the
+# trace was saved)
 step render 60 env DEEP_SSFR_SYNC_TIMINGS=1 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 1024 --splat ellipsoid --repeat 10
-step render_stage 50 "$PY" benchmarks/bench_render_stage.py --device "$DEVICE" --size 1024 --frames 30
+step render_stage 60 "$PY" benchmarks/bench_render_stage.py --device "$DEVICE" --size 1024 --frames 30 \
+    --trace "$TRACES"
 if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
     if ls .gpu/t/*.whl >/dev/null 2>&1 && ! "$PY" -c "import taichi" 2>/dev/null; then  # the third call's wheels
         "$PY" -m pip install -q --no-index --no-deps --no-compile --target "${GPU_SITE:-/tmp/gpu/site}" .gpu/t/*.whl
@@ -58,4 +70,4 @@ if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
         echo "taichi             skipped: no taichi here (bash benchmarks/gpu_stage.sh, then a third call)"
     fi
 fi
-echo "outputs in $OUT"
+echo "outputs in $OUT (summary.txt; gpu_check.tgz: the logs and traces)"

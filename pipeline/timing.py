@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 from collections import defaultdict
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 
 SYNC_ENV = "DEEP_SSFR_SYNC_TIMINGS"
 """Set to 1 to make every timer wait for the GPU at its start and end (``Timings(sync=True)``)."""
@@ -23,13 +24,27 @@ def synchronize() -> None:
             wp.synchronize()
 
 
+_RANGES = [False]  # set by pipeline.profiling.profiled while it records, for every thread
+
+
+def named_range(name: str):
+    """A range of torch's profiler named ``name`` while one records (``pipeline.profiling``'s on
+    any thread, or the calling thread's own), so a trace shows the steps and which device work each
+    queued; nothing otherwise (torch is not imported for it; the check costs tens of nanoseconds)."""
+    torch = sys.modules.get("torch")
+    if torch is not None and (_RANGES[0] or torch.autograd._profiler_enabled()):
+        return torch.profiler.record_function(name)
+    return nullcontext()
+
+
 class Timings:
     """Accumulates wall time per named step; ``with timings("splat"): ...``.
 
     On a GPU kernels and the network run behind the host, so a step's wall time holds whatever
     finished during it. ``sync`` (default: the ``DEEP_SSFR_SYNC_TIMINGS`` environment variable)
     waits for the GPU at each timer's start and end: every step then holds its own work, at the
-    cost of the overlap (for breakdowns, not for frame rates)."""
+    cost of the overlap (for breakdowns, not for frame rates). While torch's profiler records,
+    each step is a named range of its trace (``named_range``)."""
 
     def __init__(self, sync: bool | None = None) -> None:
         self.total: dict[str, float] = defaultdict(float)
@@ -42,7 +57,8 @@ class Timings:
             synchronize()
         start = time.perf_counter()
         try:
-            yield
+            with named_range(name):
+                yield
         finally:
             if self.sync:
                 synchronize()
