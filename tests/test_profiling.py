@@ -9,10 +9,17 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import torch
+import warp as wp
 
 from pipeline import profiling
 from pipeline.profiling import load_trace, profiled, summarize, union_length
 from pipeline.timing import Timings
+
+
+@wp.kernel
+def double_values(values: wp.array(dtype=float)):
+    i = wp.tid()
+    values[i] = 2.0 * values[i] + 1.0
 
 
 def test_union_counts_overlaps_once_and_clips_to_the_window():
@@ -162,3 +169,34 @@ def test_host_operations_are_ranked_by_their_own_time():
     text = summarize(events, units=1)
     ranked = [line.split()[-1] for line in text.split("by their own time")[1].splitlines()[1:]]
     assert ranked == ["aten::mkldnn_convolution", "aten::add", "aten::conv2d", "aten::convolution"]
+
+
+@pytest.mark.cuda
+def test_a_gpu_recording_holds_warps_kernels_torchs_and_the_hosts_waits():
+    """On a GPU the trace holds Warp's kernels (launched through the driver) beside torch's, each
+    credited to the step that queued it, the downloads and the host's waits for them: what the
+    GPU check's traces are read for."""
+    t = Timings()
+    values = wp.zeros(1 << 22, dtype=float, device="cuda:0")
+    x = torch.randn(1024, 1024, device="cuda")
+    wp.launch(double_values, values.shape, [values], device="cuda:0")  # loaded before the window
+    with profiled("gpu", units=2) as trace:
+        for _ in range(2):
+            with t("warp"):
+                wp.launch(double_values, values.shape, [values], device="cuda:0")
+            with t("torch"):
+                y = x @ x
+            with t("download"):
+                values.numpy()
+                y.cpu()
+    text = trace.summary()
+    assert "device busy" in text, text
+    kernels = text.split("costliest kernels")[1].split("steps' host time")[0]
+    assert "double_values" in kernels, text
+    by_step = dict(re.findall(r"(\S+) ([\d.]+)", text.split("device time by the step that queued it (ms a frame): ")[1]
+                                                  .splitlines()[0]))
+    assert float(by_step.get("warp", 0)) > 0 and float(by_step.get("torch", 0)) > 0, text
+    copies, megabytes = map(float, re.search(r"DtoH ([\d.]+) x, ([\d.]+) MB", text).groups())
+    assert copies >= 2 and abs(megabytes - 21.0) < 0.2, text  # a frame: 16.8 MB of Warp's floats, 4.2 of torch's
+    waits = float(re.search(r"host waits for the device: ([\d.]+) a frame", text).group(1))
+    assert waits >= 1, text
