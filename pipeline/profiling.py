@@ -139,11 +139,6 @@ def merged_spans(spans: list[tuple[float, float]], lo: float = float("-inf"),
     return [(a, b) for a, b in merged]
 
 
-def union_length(spans: list[tuple[float, float]], lo: float = float("-inf"), hi: float = float("inf")) -> float:
-    """The length of the union of the spans, clipped to [lo, hi]."""
-    return sum(b - a for a, b in merged_spans(spans, lo, hi))
-
-
 def idle_gaps(busy: list[tuple[float, float]], lo: float, hi: float) -> list[tuple[float, float]]:
     """The (start, length) of each stretch of [lo, hi] that no busy span covers."""
     gaps, at = [], lo

@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from pipeline import profiling
-from pipeline.profiling import load_trace, profiled, summarize, union_length
+from pipeline.profiling import load_trace, merged_spans, profiled, summarize
 from pipeline.timing import Timings
 
 
@@ -22,12 +22,12 @@ def double_values(values: wp.array(dtype=float)):
     values[i] = 2.0 * values[i] + 1.0
 
 
-def test_union_counts_overlaps_once_and_clips_to_the_window():
-    assert union_length([]) == 0.0
-    assert union_length([(0, 10), (5, 15), (20, 30)]) == 25.0
-    assert union_length([(0, 10), (2, 3), (4, 5)]) == 10.0  # nested spans add nothing
-    assert union_length([(0, 10), (20, 30)], lo=5, hi=25) == 10.0
-    assert union_length([(0, 1), (1, 2)]) == 2.0
+def test_the_union_counts_overlaps_once_and_clips_to_the_window():
+    assert merged_spans([]) == []
+    assert merged_spans([(20, 30), (0, 10), (5, 15)]) == [(0, 15), (20, 30)]
+    assert merged_spans([(0, 10), (2, 3), (4, 5)]) == [(0, 10)]  # nested spans add nothing
+    assert merged_spans([(0, 10), (20, 30)], lo=5, hi=25) == [(5, 10), (20, 25)]
+    assert merged_spans([(0, 1), (1, 2), (3, 3)]) == [(0, 2)]  # touching spans join, empty ones drop
 
 
 def _x(cat, name, ts, dur, tid=1, **args):
