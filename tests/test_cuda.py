@@ -45,6 +45,33 @@ def test_screen_space_inputs_on_the_gpu_equal_the_cpu():
     assert np.degrees(np.arccos(np.clip(dots, -1, 1))).mean() < 0.1
 
 
+def test_ellipsoids_stay_on_the_gpu_and_splat_as_the_cpus():
+    """On a GPU ``particle_ellipsoids`` leaves the ellipsoids as device arrays and the splat reads
+    them in place; the surface is the CPU's host way's (the anisotropy's sums may round otherwise)."""
+    import warp as wp
+
+    from pipeline.config import DatasetConfig
+    from pipeline.parallel import Launcher
+    from pipeline.surface import particle_ellipsoids
+
+    x = (np.random.default_rng(3).normal(size=(3000, 3)) * (0.06, 0.03, 0.05) + (0, 0, -0.5)).astype(np.float32)
+    cam = Camera(look_at((0.15, 0.1, -0.25), (0, 0, -0.5)), 40.0, 128, 128)
+    out = {}
+    for device in ("cpu", "cuda:0"):
+        ss, launch = ScreenSpace(device), Launcher(device)
+        ellipsoids = particle_ellipsoids(x, 0.0125, DatasetConfig(), launch)
+        assert isinstance(ellipsoids.centres, wp.array) == (device != "cpu")
+        out[device] = ss.splat_ellipsoids(ellipsoids, cam)
+        ss.close()
+        launch.close()
+    cpu, gpu = out["cpu"], out["cuda:0"]
+    assert cpu.mask.sum() > 2000 and (cpu.mask != gpu.mask).mean() < 1e-3
+    both = (cpu.mask > 0) & (gpu.mask > 0)
+    np.testing.assert_allclose(gpu.depth[both], cpu.depth[both], atol=1e-5)
+    dots = np.sum(cpu.normals[both] * gpu.normals[both], axis=-1)
+    assert np.degrees(np.arccos(np.clip(dots, -1, 1))).mean() < 0.1
+
+
 def test_pbf_frame_on_the_gpu_matches_the_cpu_to_rounding():
     from pipeline.sim.pbf import PBFSolver
 

@@ -264,6 +264,42 @@ def test_ellipsoids_flatten_a_sheet(ss, launch):
     np.testing.assert_allclose(ellipsoids["aniso.N"][inner], ss.normals(ellipsoids["aniso.Z"], cam)[inner])
 
 
+def test_ellipsoids_kept_on_the_device_splat_as_the_hosts(ss, launch):
+    """``particle_ellipsoids(on_device=True)`` (a GPU's way; here on the CPU's Warp arrays) leaves
+    the ellipsoids as arrays where the anisotropy made them: their shapes and bounds are the host's
+    float32 numbers bit for bit, the centres move into view space on the device within a float32
+    ulp of the host's ``to_view``, and the splat reading them in place draws the host's surface."""
+    import warp as wp
+
+    from pipeline.screen import kernels as K
+    from pipeline.surface import particle_ellipsoids
+
+    p = DatasetConfig()
+    rng = np.random.default_rng(11)
+    x = (rng.normal(size=(3000, 3)) * (0.06, 0.03, 0.05) + (0.01, -0.02, -0.55)).astype(np.float32)
+    host = particle_ellipsoids(x, R, p, launch)
+    kept = particle_ellipsoids(x, R, p, launch, on_device=True)
+    assert all(isinstance(a, wp.array) for a in (kept.centres, kept.shapes, kept.bounds))
+    np.testing.assert_array_equal(kept.centres.numpy(), host.centres)
+    np.testing.assert_array_equal(kept.shapes.numpy(), host.shapes)
+    np.testing.assert_array_equal(kept.bounds.numpy(), host.bounds)
+
+    cam = Camera(look_at((0.15, 0.1, -0.3), (0.01, -0.02, -0.55)), 40.0, 128, 128)  # a turned camera
+    out = wp.empty(len(x), dtype=wp.vec3, device="cpu")
+    launch(K.view_centres, len(x), [kept.centres, wp.mat33d(*cam.view[:3, :3].ravel()),
+                                    wp.vec3d(*cam.view[:3, 3]), out])
+    expected = cam.to_view(host.centres.astype(np.float64)).astype(np.float32)
+    assert np.all(np.abs(out.numpy() - expected) <= np.spacing(np.abs(expected)))
+
+    a, b = ss.splat_ellipsoids(host, cam), ss.splat_ellipsoids(kept, cam)
+    assert a.mask.sum() > 2000
+    assert (a.mask != b.mask).sum() <= 2  # a centre an ulp away may move a pixel on the rim
+    both = (a.mask > 0) & (b.mask > 0)
+    np.testing.assert_allclose(b.depth[both], a.depth[both], atol=1e-6)
+    np.testing.assert_allclose(b.thickness[both], a.thickness[both], atol=1e-5)
+    np.testing.assert_allclose(b.normals[both], a.normals[both], atol=1e-4)
+
+
 def test_the_frame_shares_one_sphere_splat_between_its_filter_methods(ss, launch):
     """With ``SPHERE_FILTERS`` set for the frame, the first filter method splats once for the
     others; each method's maps must be those it makes alone, and the later ones must splat nothing."""

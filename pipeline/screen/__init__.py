@@ -147,15 +147,21 @@ class ScreenSpace:
         normals.zero_()
         n = len(ellipsoids.centres)
         if n:
-            centres = camera.to_view(np.asarray(ellipsoids.centres, np.float64)).astype(np.float32)
+            rot = wp.mat33d(*np.asarray(camera.view[:3, :3], np.float64).ravel())
+            if isinstance(ellipsoids.centres, wp.array):  # on the device: read in place
+                centres = self._buffer("view_centres", n, wp.vec3)
+                self.launch(K.view_centres, n, [ellipsoids.centres, rot,
+                                                wp.vec3d(*np.asarray(camera.view[:3, 3], np.float64)), centres])
+                world_shapes, bounds = ellipsoids.shapes, ellipsoids.bounds
+            else:
+                centres = wp.array(camera.to_view(np.asarray(ellipsoids.centres, np.float64)).astype(np.float32),
+                                   dtype=wp.vec3, device=self.device)
+                world_shapes = wp.array(np.asarray(ellipsoids.shapes, np.float32), dtype=wp.mat33, device=self.device)
+                bounds = wp.array(np.asarray(ellipsoids.bounds, np.float32), dtype=float, device=self.device)
             # the shapes turn into view space on the device (a host einsum took 15-20 ms for 49k)
             shapes = self._buffer("view_shapes", n, wp.mat33)
-            self.launch(K.view_shapes, n, [wp.array(np.asarray(ellipsoids.shapes, np.float32), dtype=wp.mat33,
-                                                    device=self.device),
-                                           wp.mat33d(*np.asarray(camera.view[:3, :3], np.float64).ravel()), shapes])
-            args = [wp.array(centres, dtype=wp.vec3, device=self.device), shapes,
-                    wp.array(np.asarray(ellipsoids.bounds, np.float32), dtype=float, device=self.device),
-                    camera.focal_px, w, h]
+            self.launch(K.view_shapes, n, [world_shapes, rot, shapes])
+            args = [centres, shapes, bounds, camera.focal_px, w, h]
             bands = row_bands(self.launch, h)
             for normals_pass in (0, 1) if with_normals else (0,):
                 self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals]

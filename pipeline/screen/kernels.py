@@ -96,6 +96,22 @@ def splat_spheres(
 
 
 @wp.kernel
+def view_centres(offset: int, centres: wp.array(dtype=wp.vec3), rot: wp.mat33d, shift: wp.vec3d,
+                 out: wp.array(dtype=wp.vec3)):
+    """``out[i] = rot centres[i] + shift``: world points into view space in float64, as
+    ``Camera.to_view`` does on the host (equal to rounding: BLAS may sum in another order)."""
+    i = wp.tid() + offset
+    c = centres[i]
+    v = wp.vec3()
+    for a in range(3):
+        acc = wp.float64(0.0)
+        for j in range(3):
+            acc = acc + rot[a, j] * wp.float64(c[j])
+        v[a] = wp.float32(acc + shift[a])
+    out[i] = v
+
+
+@wp.kernel
 def view_shapes(offset: int, shapes: wp.array(dtype=wp.mat33), rot: wp.mat33d, out: wp.array(dtype=wp.mat33)):
     """``out[i] = rot shapes[i] rot^T``: world-space ellipsoid shapes into view space, in float64 and
     in numpy's ``einsum("ij,njk,lk->nil")`` order (j outer, k inner, each term (R S) R summed from

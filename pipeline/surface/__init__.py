@@ -140,33 +140,48 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
 @dataclass
 class Ellipsoids:
     """Particles as ellipsoids |shapes[i] (x - centres[i])| <= 1 (world space), with the radii of
-    their bounding spheres: what ellipsoid splatting draws instead of spheres."""
+    their bounding spheres: what ellipsoid splatting draws instead of spheres. Host arrays, or on a
+    GPU Warp arrays where the anisotropy made them (``particle_ellipsoids(on_device=True)``), which
+    the splat reads in place."""
 
-    centres: np.ndarray   # N x 3
-    shapes: np.ndarray    # N x 3 x 3, symmetric: the inverse of the semi-axis matrix (1/m)
-    bounds: np.ndarray    # N (m)
+    centres: np.ndarray | wp.array   # N x 3
+    shapes: np.ndarray | wp.array    # N x 3 x 3, symmetric: the inverse of the semi-axis matrix (1/m)
+    bounds: np.ndarray | wp.array    # N (m)
 
 
 def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
-                        device: str | None = None,
-                        kernels: tuple[wp.array, wp.array, wp.array] | None = None) -> Ellipsoids:
+                        device: str | None = None, kernels: tuple[wp.array, wp.array, wp.array] | None = None,
+                        on_device: bool | None = None) -> Ellipsoids:
     """Each particle's ellipsoid from the same anisotropy as the mesh target (Yu & Turk): the
     smoothed centre, and semi-axes of r times the kernel's principal scales (a full neighbourhood
     gives scale 1, so an interior particle stays a sphere of radius r, a surface one flattens).
 
-    ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed."""
+    ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed. ``on_device``
+    keeps the ellipsoids on the Warp device as arrays (default: on a GPU, where bringing 52 bytes a
+    particle to the host and back to splat each view cost a round trip and a wait)."""
     device = device or launch.device
     positions = np.asarray(positions, np.float32)
     if len(positions) == 0:
         return Ellipsoids(np.zeros((0, 3), np.float32), np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32))
-    return kernel_ellipsoids(kernels or anisotropic_kernels(positions, radius, p, launch, device), p)
+    on_device = str(device).startswith("cuda") if on_device is None else on_device
+    return kernel_ellipsoids(kernels or anisotropic_kernels(positions, radius, p, launch, device), p,
+                             launch if on_device else None)
 
 
-def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetConfig) -> Ellipsoids:
+def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetConfig,
+                      launch: Launcher | None = None) -> Ellipsoids:
     """The particle ellipsoids of ``anisotropic_kernels``' output: G = Q diag(1 / s) Q^T / h and
-    extent = h max(s), so with h = scale r the ellipsoid of semi-axes r s is |(scale G)(x - c)| = 1."""
+    extent = h max(s), so with h = scale r the ellipsoid of semi-axes r s is |(scale G)(x - c)| = 1.
+    With a ``launch`` they are made where the kernels lie (the same float32 numbers, tested) and
+    stay there; without, on the host."""
     centres, g, extents = kernels
     scale = p.aniso_kernel_radius
+    if launch is not None:
+        n = len(centres)
+        shapes = wp.empty(n, dtype=wp.mat33, device=centres.device)
+        bounds = wp.empty(n, dtype=float, device=centres.device)
+        launch(K.scale_ellipsoids, n, [g, extents, float(scale), shapes, bounds])
+        return Ellipsoids(centres, shapes, bounds)
     return Ellipsoids(centres.numpy(), (g.numpy() * scale).astype(np.float32),
                       (extents.numpy() / scale).astype(np.float32))
 

@@ -93,6 +93,16 @@ def compute_anisotropy(
 
 
 @wp.kernel
+def scale_ellipsoids(offset: int, kernel_g: wp.array(dtype=wp.mat33), extents: wp.array(dtype=float), scale: float,
+                     shapes: wp.array(dtype=wp.mat33), bounds: wp.array(dtype=float)):
+    """The ellipsoids of the kernels (``surface.kernel_ellipsoids``) where the kernels lie: shape
+    ``scale G`` and bounding radius ``extent / scale``, the host's float32 products and quotients."""
+    i = wp.tid() + offset
+    shapes[i] = kernel_g[i] * scale
+    bounds[i] = extents[i] / scale
+
+
+@wp.kernel
 def splat_density(
     offset: int,
     centres: wp.array(dtype=wp.vec3),
