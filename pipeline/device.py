@@ -84,13 +84,28 @@ def host_view(host, dtype):
     return wp.array(flat, dtype=dtype, device="cpu", copy=False)
 
 
-def download(a, shape: tuple[int, ...]):
+def download(a, shape: tuple[int, ...], wait: bool = True):
     """A GPU array of float pixels (``float`` or a float vector type) in a new page-locked host array
-    of ``shape`` (``vectors.host_empty``): one copy at the bus's speed."""
+    of ``shape`` (``vectors.host_empty``): one copy at the bus's speed. ``wait``: return once it has
+    landed; without, the copy is only queued and the caller calls ``wait_for_downloads`` before the
+    host reads it (several downloads then cost one wait)."""
     import warp as wp
 
     from pipeline.vectors import host_empty
 
     out = host_empty(shape, pinned=True)
     wp.copy(host_view(out, a.dtype), a)
+    if wait:
+        wait_for_downloads(a.device)
     return out
+
+
+def wait_for_downloads(device) -> None:
+    """Return once the copies queued on Warp's stream of ``device`` have landed in host memory. A
+    copy into page-locked memory returns as soon as it is queued (into pageable memory only when it
+    is done), so the host must wait before it reads one; nothing to do on the CPU."""
+    import warp as wp
+
+    device = wp.get_device(device)
+    if device.is_cuda:
+        wp.synchronize_stream(wp.get_stream(device))

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import warp as wp
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import Cameras, FluidShape, SceneConfig, SimulateConfig, from_dict
@@ -15,6 +16,25 @@ from stages import cli
 from tests.conftest import CAMERAS
 
 pytestmark = pytest.mark.cuda
+
+
+@wp.kernel
+def hold_the_gpu(loops: int, out: wp.array(dtype=float)):
+    """One thread counting for a while: the work queued after it waits (tens of milliseconds)."""
+    x = wp.float32(0.0)
+    for _ in range(loops):
+        x = x * 0.999 + 1.0
+    out[0] = x
+
+
+@wp.kernel
+def fill_with(value: float, out: wp.array(dtype=float)):
+    out[wp.tid()] = value
+
+
+def _busy_gpu() -> None:
+    """Keep Warp's stream busy, so that a download which does not wait returns before its data lands."""
+    wp.launch(hold_the_gpu, 1, [20_000_000, wp.zeros(1, dtype=float, device="cuda:0")], device="cuda:0")
 
 
 def _blob(n: int = 3000, seed: int = 0) -> np.ndarray:
@@ -271,3 +291,61 @@ def test_a_gpu_frames_downloads_land_in_page_locked_memory():
             assert out.fluid[..., 3].min() > 0
         shader.close()
     np.testing.assert_allclose(skies["cuda:0"], skies["cpu"], atol=1e-5)
+
+
+def _held(fn):
+    """``fn`` with the GPU held right after it has queued its work (``hold_the_gpu``): the host
+    uploads (which wait for the GPU) are behind, the downloads that follow queue behind the hold."""
+    def held(*args, **kwargs):
+        out = fn(*args, **kwargs)
+        _busy_gpu()
+        return out
+    return held
+
+
+def test_downloads_land_before_the_host_reads_them():
+    """A copy into page-locked memory returns as soon as it is queued: each download the host reads
+    (one map, a view's screen-space maps, the shaded passes, the sky) waits for its copies. The GPU
+    is held just before each is queued, so one that did not wait would hand the host memory the
+    copy had not yet written."""
+    from pipeline.config import DatasetConfig, RenderConfig
+    from pipeline.device import download
+    from pipeline.shading import Shader
+
+    value = float(np.random.default_rng().uniform(1.0, 2.0))
+    values = wp.zeros(1 << 20, dtype=float, device="cuda:0")
+    _busy_gpu()
+    wp.launch(fill_with, values.shape, [value, values], device="cuda:0")
+    assert np.all(download(values, (1024, 1024)) == np.float32(value))
+
+    cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 256, 256)
+    x = _blob(20000, seed=4)
+    maps = {}
+    for device in ("cpu", "cuda:0"):
+        ss = ScreenSpace(device)
+        if device != "cpu":  # between the splat (its upload) and the maps' downloads
+            ss._splat, ss._filter = _held(ss._splat), _held(ss._filter)
+        maps[device] = ss.inputs(x, 0.01, cam, DatasetConfig(), ("bilateral",))
+        maps[device]["splat"] = ss.splat(x, 0.01, cam).mask
+        ss.close()
+    for key in ("A", "splat"):
+        np.testing.assert_array_equal(maps["cuda:0"][key], maps["cpu"][key], err_msg=key)
+    np.testing.assert_allclose(maps["cuda:0"]["bilateral.Z"], maps["cpu"]["bilateral.Z"], atol=1e-5)
+
+    p = RenderConfig(width=256, height=256)
+    bg, bg_depth = np.full((256, 256, 3), 0.25, np.float32), np.zeros((256, 256), np.float32)
+    passes = {}
+    for device in ("cpu", "cuda:0"):
+        shader = Shader(device)
+        launch = shader.launch
+        if device != "cpu":  # between the inputs' uploads and the passes' downloads
+            shader.launch = _held(launch)
+        sky = shader.fill_sky(bg, bg_depth, cam, p)
+        out = shader.shade(maps["cpu"]["bilateral.N"], maps["cpu"]["bilateral.Z"], maps["cpu"]["thickness"],
+                           maps["cpu"]["A"], sky, bg_depth, cam, p)
+        passes[device] = (sky, out.beauty, out.depth)
+        shader.launch = launch
+        shader.close()
+    assert passes["cpu"][1][..., 3].sum() > 1000
+    for name, gpu, cpu in zip(("sky", "beauty", "depth"), passes["cuda:0"], passes["cpu"], strict=True):
+        np.testing.assert_allclose(gpu, cpu, rtol=1e-3, atol=1e-3, err_msg=name)  # the GPU rounds exp, pow otherwise

@@ -16,7 +16,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
-from pipeline.device import download, on_torch_stream, torch_waits_for_warp, warp_waits_for_torch
+from pipeline.device import download, on_torch_stream, torch_waits_for_warp, wait_for_downloads, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
@@ -105,17 +105,17 @@ class ScreenSpace:
         return buf
 
     @staticmethod
-    def _download(a: wp.array, shape: tuple[int, ...]) -> np.ndarray:
+    def _download(a: wp.array, shape: tuple[int, ...], wait: bool = True) -> np.ndarray:
         """The buffer's pixels as a host array of their own: from a GPU one copy into page-locked
-        memory (``pipeline.device.download``); on the CPU a copy of the buffer, which the next frame
-        overwrites."""
-        return download(a, shape) if a.device.is_cuda else a.numpy().reshape(shape).copy()
+        memory (``pipeline.device.download``; without ``wait`` only queued: ``wait_for_downloads``
+        before reading); on the CPU a copy of the buffer, which the next frame overwrites."""
+        return download(a, shape, wait) if a.device.is_cuda else a.numpy().reshape(shape).copy()
 
     def _take(self, a: wp.array, shape: tuple[int, ...], on_device: bool):
-        """The buffer's pixels as a host array (``_download``) or, ``on_device``, as a torch tensor
-        on the device holding a copy made there (queued on Warp's stream; ``inputs`` hands the
-        copies over to torch's once all are queued)."""
-        return wp.to_torch(wp.clone(a)).reshape(shape) if on_device else self._download(a, shape)
+        """The buffer's pixels as a host array (``_download``, queued: ``inputs`` waits once for
+        all) or, ``on_device``, as a torch tensor on the device holding a copy made there (queued
+        on Warp's stream; ``inputs`` hands the copies over to torch's once all are queued)."""
+        return wp.to_torch(wp.clone(a)).reshape(shape) if on_device else self._download(a, shape, wait=False)
 
     # ---- kernels on device arrays ---------------------------------------------------------------
 
@@ -260,6 +260,8 @@ class ScreenSpace:
                 out[f"{key}.N"] = take(self._normals(d, camera), (*shape, 3), on_device)
         if on_device:
             torch_waits_for_warp(self.device)
+        else:  # the maps' copies have landed before the host reads them
+            wait_for_downloads(self.device)
         return out
 
     def motion(self, positions_world: np.ndarray, particle_motion: np.ndarray, radius: float, camera: Camera,

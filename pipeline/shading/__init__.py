@@ -10,7 +10,7 @@ import warp as wp
 
 from pipeline.camera import Camera
 from pipeline.config import RenderConfig
-from pipeline.device import host_view, torch_waits_for_warp, warp_waits_for_torch
+from pipeline.device import host_view, torch_waits_for_warp, wait_for_downloads, warp_waits_for_torch
 from pipeline.parallel import Launcher
 from pipeline.shading import kernels as K
 from pipeline.vectors import host_empty, is_tensor
@@ -75,11 +75,17 @@ class Shader:
         return wp.empty(host.shape[0] * host.shape[1], dtype=dtype, device=self.device)
 
     def _result(self, out: wp.array, host: np.ndarray) -> np.ndarray:
-        """``host`` holding the kernel's output: on a GPU copied straight into it (one copy, not a
-        download and a second copy; the copy to pageable memory returns when it is done)."""
+        """``host`` to hold the kernel's output: on a GPU the copy straight into it is queued (one
+        copy, not a download and a second copy); ``_landed`` before the host reads it."""
         if not self._cpu:
             wp.copy(host_view(host, out.dtype), out)
         return host
+
+    def _landed(self) -> None:
+        """Wait for the queued copies of ``_result``: one into page-locked memory returns before it
+        lands (``pipeline.device.wait_for_downloads``)."""
+        if not self._cpu:
+            wait_for_downloads(self.device)
 
     def shade(self, normals: np.ndarray, depth: np.ndarray, thickness: np.ndarray, mask: np.ndarray,
               background: np.ndarray, background_depth: np.ndarray, camera: Camera, p: RenderConfig) -> ShadedPasses:
@@ -111,6 +117,7 @@ class Shader:
             p.refraction_strength, p.min_facing, *dev])
         for a, host in zip(dev, (out.beauty, out.fluid, out.depth, out.normals_view, out.normals_world), strict=True):
             self._result(a, host)
+        self._landed()
         return out
 
     def fill_sky(self, background: np.ndarray, background_depth: np.ndarray, camera: Camera,
@@ -131,7 +138,9 @@ class Shader:
         if on_device:
             torch_waits_for_warp(self.device)
             return wp.to_torch(out).reshape(h, w, 3)
-        return self._result(out, sky)
+        self._result(out, sky)
+        self._landed()
+        return sky
 
     def close(self) -> None:
         """Stop the thread pool."""
