@@ -345,32 +345,42 @@ def fill_rims(values, covered, wanted, steps: int | None = RIM_FILL_STEPS):
     return values
 
 
+RINGS_PER_WAIT = 4
+"""Rings the rim fill on tensors queues between two looks at their counts. A ring after one that
+filled nothing fills nothing either (the covered pixels are the same), so the extra rings of a batch
+change no value; a GPU then waits once for up to this many rings."""
+
+
 def _fill_rims_on_device(values, covered, wanted, steps: int | None):
     """``fill_rims`` on torch tensors, where they lie: two Warp passes a ring (``fill_ring``,
     ``close_ring``) on torch's stream. The pixel list would make a GPU wait for the device at every
-    boolean index (some 500 waits a 1024 frame); this waits once a ring, for the count of pixels it
-    filled, to stop when a ring filled none."""
+    boolean index (some 500 waits a 1024 frame); this waits once to see whether there is anything
+    to fill, then once every ``RINGS_PER_WAIT`` rings, for the counts of pixels they filled, to stop
+    after a ring that filled none."""
     if values.dtype != torch.float32:
         raise TypeError(f"fill_rims on tensors fills float32 maps, not {values.dtype}")
     hole = wanted & ~covered
-    if not bool(hole.any()) or not bool(covered.any()):
+    if not all(torch.stack([hole.any(), covered.any()]).tolist()):
         return values
     wp.init()
     h, w = covered.shape
     out = values.clone().contiguous()
     covered_u8, hole_u8 = covered.to(torch.uint8).contiguous(), hole.to(torch.uint8).contiguous()
     filled = torch.zeros_like(hole_u8)
-    count = torch.zeros(1, dtype=torch.int32, device=values.device)
-    arrays = [wp.from_torch(a) for a in (covered_u8, hole_u8, out.reshape(h, w, -1), filled, count)]
+    counts = torch.zeros(RINGS_PER_WAIT, dtype=torch.int32, device=values.device)
+    arrays = [wp.from_torch(a) for a in (covered_u8, hole_u8, out.reshape(h, w, -1), filled)]
+    count_of = [wp.from_torch(counts[k:k + 1]) for k in range(RINGS_PER_WAIT)]
     device = wp.device_from_torch(values.device)
     ring = 0
     while steps is None or ring < steps:
-        ring += 1
-        count.zero_()
+        batch = RINGS_PER_WAIT if steps is None else min(RINGS_PER_WAIT, steps - ring)
+        counts.zero_()
         with on_torch_stream(values.device):
-            wp.launch(K.fill_ring, (h, w), arrays, device=device)
-            wp.launch(K.close_ring, (h, w), [arrays[0], arrays[1], arrays[3]], device=device)
-        if int(count.item()) == 0:
+            for k in range(batch):
+                wp.launch(K.fill_ring, (h, w), [*arrays, count_of[k]], device=device)
+                wp.launch(K.close_ring, (h, w), [arrays[0], arrays[1], arrays[3]], device=device)
+        ring += batch
+        if 0 in counts[:batch].tolist():
             break
     return out
 

@@ -323,7 +323,7 @@ def test_particle_motion_of_tensors_is_the_host_motion(device):
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
-@pytest.mark.parametrize("steps", [None, 1, 3])
+@pytest.mark.parametrize("steps", [None, 1, 3, 5])
 def test_rim_fill_of_tensors_is_the_pixel_lists(steps, device):
     """On tensors the rim fill runs as whole-image steps (a GPU would otherwise wait at every boolean
     index): the same values as the pixel-list fill on numpy, bit for bit, for one-channel and
