@@ -293,12 +293,16 @@ def test_a_gpu_frames_downloads_land_in_page_locked_memory():
     np.testing.assert_allclose(skies["cuda:0"], skies["cpu"], atol=1e-5)
 
 
-def _held(fn):
-    """``fn`` with the GPU held right after it has queued its work (``hold_the_gpu``): the host
-    uploads (which wait for the GPU) are behind, the downloads that follow queue behind the hold."""
+def _held(fn, first: bool = False):
+    """``fn`` with the GPU held right after it has queued its work (``hold_the_gpu``), or with
+    ``first`` right before: the host uploads (which wait for the GPU) are behind, the downloads that
+    follow queue behind the hold."""
     def held(*args, **kwargs):
+        if first:
+            _busy_gpu()
         out = fn(*args, **kwargs)
-        _busy_gpu()
+        if not first:
+            _busy_gpu()
         return out
     return held
 
@@ -320,6 +324,7 @@ def test_downloads_land_before_the_host_reads_them():
 
     cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 256, 256)
     x = _blob(20000, seed=4)
+    per_particle = np.random.default_rng(5).normal(size=(len(x), 4)).astype(np.float32)
     maps = {}
     for device in ("cpu", "cuda:0"):
         ss = ScreenSpace(device)
@@ -327,9 +332,13 @@ def test_downloads_land_before_the_host_reads_them():
             ss._splat, ss._filter = _held(ss._splat), _held(ss._filter)
         maps[device] = ss.inputs(x, 0.01, cam, DatasetConfig(), ("bilateral",))
         maps[device]["splat"] = ss.splat(x, 0.01, cam).mask
+        if device != "cpu":  # before each of the motion pass's two downloads
+            ss._take = _held(ss._take, first=True)
+        maps[device]["motion"], maps[device]["moved"] = ss.motion(x, per_particle, 0.01, cam)
         ss.close()
-    for key in ("A", "splat"):
+    for key in ("A", "splat", "moved"):
         np.testing.assert_array_equal(maps["cuda:0"][key], maps["cpu"][key], err_msg=key)
+    np.testing.assert_allclose(maps["cuda:0"]["motion"], maps["cpu"]["motion"], atol=1e-4)
     np.testing.assert_allclose(maps["cuda:0"]["bilateral.Z"], maps["cpu"]["bilateral.Z"], atol=1e-5)
 
     p = RenderConfig(width=256, height=256)

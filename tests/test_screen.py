@@ -363,3 +363,31 @@ def test_inputs_on_the_device_are_the_host_maps_as_tensors_that_later_views_leav
             assert isinstance(got[key], torch.Tensor) and got[key].shape == value.shape, key
             np.testing.assert_array_equal(got[key].numpy(), value, err_msg=key)
         assert not np.array_equal(later[next(iter(later))].numpy(), got[next(iter(got))].numpy())
+
+
+def test_buffers_are_reused_while_their_size_stays_and_replaced_when_it_changes(ss, launch):
+    """One device array a name: frames of one size reuse it, and a growing particle count (an
+    emitter) or a new image size (the dataset's random views) replaces it instead of keeping one
+    array a size for as long as the ScreenSpace lives. The maps are those of a fresh ScreenSpace."""
+    from pipeline.surface import particle_ellipsoids
+
+    p = DatasetConfig()
+    rng = np.random.default_rng(3)
+    x = (rng.normal(size=(1200, 3)) * (0.05, 0.03, 0.04) + (0.0, 0.0, -0.5)).astype(np.float32)
+    ss.inputs(x[:1000], R, _camera(64), p, filters=("bilateral",))
+    names = set(ss._buffers)
+    kept = {name: a for name, (_, a) in ss._buffers.items()}
+    ss.inputs(x[:1000], R, _camera(64), p, filters=("bilateral",))
+    assert all(ss._buffers[name][1] is kept[name] for name in names), "the same size reuses its arrays"
+    for k, n in enumerate((1000, 1100, 1200)):  # growing particle counts at growing image sizes
+        cam = _camera(64 + 32 * k)
+        got = ss.inputs(x[:n], R, cam, p, filters=("bilateral",),
+                        ellipsoids=particle_ellipsoids(x[:n], R, p, launch))
+        fresh = ScreenSpace("cpu")
+        want = fresh.inputs(x[:n], R, cam, p, filters=("bilateral",),
+                            ellipsoids=particle_ellipsoids(x[:n], R, p, launch))
+        fresh.close()
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    assert len(ss._buffers) <= len(names) + 3  # plus the ellipsoid splat's normals and shapes, no more
+    assert ss._buffers["view_shapes"][1].shape[0] == 1200

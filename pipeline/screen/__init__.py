@@ -87,17 +87,20 @@ class ScreenSpace:
     def __init__(self, device: str = "cpu", threads: int = 0):
         self.device = device
         self.launch = Launcher(device, threads, min_chunk=4096)
-        self._buffers: dict[tuple, wp.array] = {}
+        self._buffers: dict[str, tuple[tuple, wp.array]] = {}
 
     # ---- device buffers -------------------------------------------------------------------------
 
     def _buffer(self, name: str, n: int, dtype=float) -> wp.array:
-        """A device array reused between frames of the same size."""
-        key = (name, n, dtype)
-        buf = self._buffers.get(key)
-        if buf is None:
-            buf = self._buffers[key] = wp.empty(n, dtype=dtype, device=self.device)
-        return buf
+        """The device array ``name``, reused while its size and type stay (frames of one image
+        size, views of one particle count) and replaced when they change: one array a name, so an
+        emitter's growing particle count or the dataset's random image sizes leave no array behind
+        (they did, one a size, for as long as the ScreenSpace lived)."""
+        key = (n, dtype)
+        kept = self._buffers.get(name)
+        if kept is None or kept[0] != key:
+            kept = self._buffers[name] = (key, wp.empty(n, dtype=dtype, device=self.device))
+        return kept[1]
 
     def _upload(self, name: str, depth: np.ndarray) -> wp.array:
         buf = self._buffer(name, depth.size)
@@ -111,11 +114,12 @@ class ScreenSpace:
         before reading); on the CPU a copy of the buffer, which the next frame overwrites."""
         return download(a, shape, wait) if a.device.is_cuda else a.numpy().reshape(shape).copy()
 
-    def _take(self, a: wp.array, shape: tuple[int, ...], on_device: bool):
-        """The buffer's pixels as a host array (``_download``, queued: ``inputs`` waits once for
-        all) or, ``on_device``, as a torch tensor on the device holding a copy made there (queued
-        on Warp's stream; ``inputs`` hands the copies over to torch's once all are queued)."""
-        return wp.to_torch(wp.clone(a)).reshape(shape) if on_device else self._download(a, shape, wait=False)
+    def _take(self, a: wp.array, shape: tuple[int, ...], on_device: bool, wait: bool = True):
+        """The buffer's pixels as a host array (``_download``; without ``wait`` only queued, and
+        the caller waits once for all) or, ``on_device``, as a torch tensor on the device holding a
+        copy made there (queued on Warp's stream; the caller hands the copies over to torch's once
+        all are queued)."""
+        return wp.to_torch(wp.clone(a)).reshape(shape) if on_device else self._download(a, shape, wait)
 
     # ---- kernels on device arrays ---------------------------------------------------------------
 
@@ -240,7 +244,10 @@ class ScreenSpace:
         shape = (camera.height, camera.width)
         aniso = ellipsoids is not None
         raw = "aniso." if aniso else ""
-        take = self._take
+
+        def take(a: wp.array, shape: tuple[int, ...], on_device: bool):  # queued: one wait at the end
+            return self._take(a, shape, on_device, wait=False)
+
         with t("splat"):
             if aniso:
                 depth, mask, thickness, _ = self._splat_ellipsoids(ellipsoids, camera)
