@@ -223,81 +223,104 @@ def summarize(events: list[dict], units: int = 1, unit: str = "frame", name: str
     units = max(int(units), 1)
     complete = [e for e in events if e.get("ph") == "X" and "ts" in e]
     lo, hi = _window(complete)
-    wall = hi - lo
-    per = lambda us: us / 1000.0 / units  # noqa: E731 (microseconds in all -> ms a unit)
-    lines = [f"{name}: {units} {unit}{'s' if units != 1 else ''} in {wall / 1000:.1f} ms "
-             f"({per(wall):.2f} ms a {unit})"]
-    device = [e for e in complete if e.get("cat") in DEVICE_CATEGORIES]
-    if device:
-        spans = merged_spans(_spans(device), lo, hi)
-        busy = sum(b - a for a, b in spans)
-        by_kind = {c: sum(float(e.get("dur", 0.0)) for e in device if e["cat"] == c) for c in DEVICE_CATEGORIES}
-        lines.append(f"device busy {per(busy):.2f} ms a {unit} ({100 * busy / max(wall, 1e-9):.0f}% of the window): "
-                     f"kernels {per(by_kind['kernel']):.2f}, copies {per(by_kind['gpu_memcpy']):.2f}, "
-                     f"fills {per(by_kind['gpu_memset']):.2f} ms")
-        gaps = [g for g in idle_gaps(spans, lo, hi) if g[1] >= GAP_US]
-        longest = sorted(gaps, key=lambda g: -g[1])[:3]
-        lines.append(f"device idle in {len(gaps) / units:.1f} gaps of {GAP_US / 1000:g} ms or more a {unit}, "
-                     f"{per(sum(g[1] for g in gaps)):.2f} ms; the longest "
-                     + ", ".join(f"{g[1] / 1000:.2f} ms at +{(g[0] - lo) / 1000:.1f}" for g in longest))
-        runtime = [e for e in complete if e.get("cat") in LAUNCH_CATEGORIES]
-        waits = [e for e in runtime if HOST_WAIT.search(str(e.get("name", "")))]
-        wait_names = defaultdict(lambda: [0, 0.0])
-        for e in waits:
-            wait_names[e["name"]][0] += 1
-            wait_names[e["name"]][1] += float(e.get("dur", 0.0))
-        launches = sum(1 for e in runtime if LAUNCHES.match(str(e.get("name", ""))))
-        lines.append(f"host waits for the device: {len(waits) / units:.1f} a {unit}, "
-                     f"{per(sum(v[1] for v in wait_names.values())):.2f} ms"
-                     + (" (" + ", ".join(f"{k} {c / units:.1f}" for k, (c, _) in sorted(wait_names.items())) + ")"
-                        if wait_names else "")
-                     + f"; {launches / units:.1f} kernel launches a {unit}")
-        copies = defaultdict(lambda: [0, 0.0, 0.0])
-        for e in device:
-            if e["cat"] == "gpu_memcpy":
-                found = COPY_DIRECTION.search(str(e.get("name", "")))
-                c = copies[found.group(1) if found else "other"]
-                c[0] += 1
-                c[1] += float(e.get("args", {}).get("bytes", 0) or 0)
-                c[2] += float(e.get("dur", 0.0))
-        if copies:
-            lines.append("copies a " + unit + ": " + "; ".join(
-                f"{k} {c[0] / units:.1f} x, {c[1] / units / 1e6:.1f} MB in {per(c[2]):.2f} ms"
-                + (f" ({c[1] / c[2] / 1e3:.1f} GB/s)" if c[2] > 0 and c[1] > 0 else "")
-                for k, c in sorted(copies.items())))
-        step = _step_of_launch(complete)
-        by_step = defaultdict(float)
-        for e in device:
-            by_step[step.get(e.get("args", {}).get("correlation"), "(no step)")] += float(e.get("dur", 0.0))
-        lines.append(f"device time by the step that queued it (ms a {unit}): " + ", ".join(
-            f"{k} {per(v):.2f}" for k, v in sorted(by_step.items(), key=lambda kv: -kv[1])))
-        kernels = defaultdict(lambda: [0, 0.0])
-        for e in device:
-            if e["cat"] == "kernel":
-                kernels[str(e["name"])][0] += 1
-                kernels[str(e["name"])][1] += float(e.get("dur", 0.0))
-        lines.append(f"costliest kernels (ms a {unit}, launches a {unit}):")
-        lines += [f"  {per(t):8.3f}  {c / units:6.1f}  {_short(k)}"
-                  for k, (c, t) in sorted(kernels.items(), key=lambda kv: -kv[1][1])[:top]]
+    per = _Per(units, unit)
+    lines = [f"{name}: {units} {unit}{'s' if units != 1 else ''} in {(hi - lo) / 1000:.1f} ms "
+             f"({per(hi - lo):.2f} ms a {unit})"]
+    if any(e.get("cat") in DEVICE_CATEGORIES for e in complete):
+        lines += _device_figures(complete, lo, hi, per, top)
     else:
         lines.append("no device activity in the trace (a CPU run): the host's figures only")
-    steps = defaultdict(lambda: [0, 0.0])
-    for e in complete:
-        if e.get("cat") == "user_annotation" and not str(e.get("name", "")).startswith(WINDOW_PREFIX):
-            steps[str(e["name"])][0] += 1
-            steps[str(e["name"])][1] += float(e.get("dur", 0.0))
+    return "\n".join(lines + _host_figures(complete, per, top))
+
+
+@dataclass(frozen=True)
+class _Per:
+    """Microseconds in all -> milliseconds a unit, and counts in all -> a unit."""
+
+    units: int
+    unit: str
+
+    def __call__(self, us: float) -> float:
+        return us / 1000.0 / self.units
+
+    def count(self, n: float) -> float:
+        return n / self.units
+
+
+def _totals(events: list[dict], key) -> dict[str, list[float]]:
+    """[count, summed duration] of the events by ``key(event)``."""
+    out = defaultdict(lambda: [0, 0.0])
+    for e in events:
+        out[key(e)][0] += 1
+        out[key(e)][1] += float(e.get("dur", 0.0))
+    return out
+
+
+def _ranked(totals: dict[str, list[float]], per: _Per, top: int) -> list[str]:
+    """The ``top`` entries by time: ms and count a unit, the name."""
+    return [f"  {per(t):8.3f}  {per.count(c):6.1f}  {_short(k)}"
+            for k, (c, t) in sorted(totals.items(), key=lambda kv: -kv[1][1])[:top]]
+
+
+def _device_figures(complete: list[dict], lo: float, hi: float, per: _Per, top: int) -> list[str]:
+    """The device's lines of ``summarize``."""
+    unit, device = per.unit, [e for e in complete if e.get("cat") in DEVICE_CATEGORIES]
+    spans = merged_spans(_spans(device), lo, hi)
+    busy = sum(b - a for a, b in spans)
+    kind = _totals(device, lambda e: e["cat"])
+    lines = [f"device busy {per(busy):.2f} ms a {unit} ({100 * busy / max(hi - lo, 1e-9):.0f}% of the window): "
+             f"kernels {per(kind['kernel'][1]):.2f}, copies {per(kind['gpu_memcpy'][1]):.2f}, "
+             f"fills {per(kind['gpu_memset'][1]):.2f} ms"]
+    gaps = [g for g in idle_gaps(spans, lo, hi) if g[1] >= GAP_US]
+    lines.append(f"device idle in {per.count(len(gaps)):.1f} gaps of {GAP_US / 1000:g} ms or more a {unit}, "
+                 f"{per(sum(g[1] for g in gaps)):.2f} ms; the longest "
+                 + ", ".join(f"{g[1] / 1000:.2f} ms at +{(g[0] - lo) / 1000:.1f}"
+                             for g in sorted(gaps, key=lambda g: -g[1])[:3]))
+    runtime = [e for e in complete if e.get("cat") in LAUNCH_CATEGORIES]
+    waits = _totals([e for e in runtime if HOST_WAIT.search(str(e.get("name", "")))], lambda e: str(e["name"]))
+    launches = sum(1 for e in runtime if LAUNCHES.match(str(e.get("name", ""))))
+    lines.append(f"host waits for the device: {per.count(sum(c for c, _ in waits.values())):.1f} a {unit}, "
+                 f"{per(sum(t for _, t in waits.values())):.2f} ms"
+                 + (" (" + ", ".join(f"{k} {per.count(c):.1f}" for k, (c, _) in sorted(waits.items())) + ")"
+                    if waits else "")
+                 + f"; {per.count(launches):.1f} kernel launches a {unit}")
+    copies = defaultdict(lambda: [0, 0.0, 0.0])
+    for e in device:
+        if e["cat"] == "gpu_memcpy":
+            found = COPY_DIRECTION.search(str(e.get("name", "")))
+            c = copies[found.group(1) if found else "other"]
+            c[0] += 1
+            c[1] += float(e.get("args", {}).get("bytes", 0) or 0)
+            c[2] += float(e.get("dur", 0.0))
+    if copies:
+        lines.append(f"copies a {unit}: " + "; ".join(
+            f"{k} {per.count(c[0]):.1f} x, {per.count(c[1]) / 1e6:.1f} MB in {per(c[2]):.2f} ms"
+            + (f" ({c[1] / c[2] / 1e3:.1f} GB/s)" if c[2] > 0 and c[1] > 0 else "")
+            for k, c in sorted(copies.items())))
+    step = _step_of_launch(complete)
+    by_step = _totals(device, lambda e: step.get(e.get("args", {}).get("correlation"), "(no step)"))
+    lines.append(f"device time by the step that queued it (ms a {unit}): " + ", ".join(
+        f"{k} {per(t):.2f}" for k, (_, t) in sorted(by_step.items(), key=lambda kv: -kv[1][1])))
+    lines.append(f"costliest kernels (ms a {unit}, launches a {unit}):")
+    return lines + _ranked(_totals([e for e in device if e["cat"] == "kernel"], lambda e: str(e["name"])), per, top)
+
+
+def _host_figures(complete: list[dict], per: _Per, top: int) -> list[str]:
+    """The host's lines of ``summarize``: the steps' time and the costliest operations."""
+    lines = []
+    steps = _totals([e for e in complete if e.get("cat") == "user_annotation"
+                     and not str(e.get("name", "")).startswith(WINDOW_PREFIX)], lambda e: str(e["name"]))
     if steps:
-        lines.append(f"steps' host time (ms a {unit}): " + ", ".join(
+        lines.append(f"steps' host time (ms a {per.unit}): " + ", ".join(
             f"{k} {per(t):.2f}" for k, (_, t) in sorted(steps.items(), key=lambda kv: -kv[1][1])))
     ops = defaultdict(lambda: [0, 0.0])
     for op, own in _self_times([e for e in complete if e.get("cat") == "cpu_op"]):
         ops[op][0] += 1
         ops[op][1] += own
     if ops:
-        lines.append(f"costliest host operations, by their own time (ms a {unit}, calls a {unit}):")
-        lines += [f"  {per(t):8.3f}  {c / units:6.1f}  {_short(k)}"
-                  for k, (c, t) in sorted(ops.items(), key=lambda kv: -kv[1][1])[:top]]
-    return "\n".join(lines)
+        lines.append(f"costliest host operations, by their own time (ms a {per.unit}, calls a {per.unit}):")
+        lines += _ranked(ops, per, top)
+    return lines
 
 
 def main(argv: list[str] | None = None) -> None:
