@@ -15,8 +15,8 @@
 # there:
 #
 #     bash benchmarks/gpu_check.sh            # OUT defaults to $OUT (the device tool's) or /tmp/gpu_check
-#     bash benchmarks/gpu_check.sh taichi     # only the steps named (gpu cuda_tests sim sim_stage dataset
-#                                             # dataset_stage render render_stage taichi)
+#     bash benchmarks/gpu_check.sh taichi     # only the steps named (gpu cuda_tests sim sim_stage render_stage
+#                                             # dataset_stage render dataset taichi)
 #
 # GPU_CHECK_DEVICE=cpu runs the same steps on the CPU (a dry run of the script; minutes longer).
 #
@@ -47,19 +47,20 @@ step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output
 TRACES=$WORK/traces
 
 # the limits add up to under the device tool's 10 minutes a command; the cuda tests come first, so
-# their compilation of every kernel module for the GPU is cached for the later steps
+# their compilation of every kernel module for the GPU is cached for the later steps, then the
+# issue's figures (the stages' rates), then the per-part breakdowns: a lease that ends early (the
+# device time is shared with the machine's start) loses the breakdowns first
 step gpu 10 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
 step cuda_tests 120 "$PY" -m pytest -q -m cuda -p no:cacheprovider tests
 step sim 45 "$PY" benchmarks/bench_sim.py --device "$DEVICE" --particles 50000 --steps 400
 step sim_stage 85 "$PY" benchmarks/bench_sim_stage.py --particle-radius 0.00888 --trace "$TRACES"
-step dataset 70 "$PY" benchmarks/bench_dataset.py --device "$DEVICE"
-step dataset_stage 70 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frames 16 --trace "$TRACES"
-# bench_render's per-stage columns with every step waiting for the GPU (DEEP_SSFR_SYNC_TIMINGS), so
-# each holds its own work; bench_render_stage's frames/s keep the overlap (its last line: where the
-# trace was saved)
-step render 60 env DEEP_SSFR_SYNC_TIMINGS=1 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 1024 --splat ellipsoid --repeat 10
 step render_stage 60 "$PY" benchmarks/bench_render_stage.py --device "$DEVICE" --size 1024 --frames 30 \
     --trace "$TRACES"
+step dataset_stage 70 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frames 16 --trace "$TRACES"
+# bench_render's per-stage columns with every step waiting for the GPU (DEEP_SSFR_SYNC_TIMINGS), so
+# each holds its own work; bench_render_stage's frames/s keep the overlap
+step render 60 env DEEP_SSFR_SYNC_TIMINGS=1 "$PY" benchmarks/bench_render.py --device "$DEVICE" --sizes 1024 --splat ellipsoid --repeat 10
+step dataset 70 "$PY" benchmarks/bench_dataset.py --device "$DEVICE"
 if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
     if ls .gpu/t/*.whl >/dev/null 2>&1 && ! "$PY" -c "import taichi" 2>/dev/null; then  # the third call's wheels
         "$PY" -m pip install -q --no-index --no-deps --no-compile --target "${GPU_SITE:-/tmp/gpu/site}" .gpu/t/*.whl
