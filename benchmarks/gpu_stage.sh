@@ -12,9 +12,11 @@
 # imageio-ffmpeg's wheel (68 MB) cannot travel at all, so nothing run there writes a video.
 # The calls, while the machine stays warm (30 s after each):
 #   1. `bash .gpu/a/boot.sh keep`                                   carry [".gpu/a"]
-#   2. `source .gpu/py/boot.sh && bash benchmarks/gpu_check.sh`     carry [".gpu/b", ".gpu/py"]
-#   3. `export PYTHONPATH=/tmp/gpu/site:$PWD DEEP_SSFR_DEVICE=cuda && bash benchmarks/gpu_check.sh taichi`
-#                                                                   carry [".gpu/t"]
+#   2. `source .gpu/py/boot.sh && bash benchmarks/gpu_check.sh gpu cuda_tests sim sim_stage render_stage
+#      dataset_stage`                                               carry [".gpu/b", ".gpu/py"]
+#   3. `export PYTHONPATH=/tmp/gpu/site:$PWD DEEP_SSFR_DEVICE=cuda && bash benchmarks/gpu_check.sh taichi
+#      render dataset`                                              carry [".gpu/t"]
+# Each call's OUT brings back summary.txt and gpu_check.tgz (the logs and profiler traces so far).
 # From the project root, after `make setup`:  bash benchmarks/gpu_stage.sh
 set -euo pipefail
 PY=${PYTHON:-.venv/bin/python}
