@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 from tqdm import tqdm
 
 from pipeline.cache import atomic_path
@@ -127,11 +128,14 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
                  for c, path in targets.items()]
         views += [(cam, path, False) for cam, path in zip(random_cameras(scene.name, frame, x, radius, p), randoms,
                                                           strict=True)]
+        # on a GPU the positions go up once for every view's sphere splat, which moves them into view
+        # space there (on the host: 4 ms a view for 49k particles, and an upload each)
+        x_views = wp.array(np.asarray(x, np.float32), dtype=wp.vec3, device=device) if device != "cpu" else x
         for cam, target, every_filter in views:
             if target.exists():
                 continue
             # random views are for training: the ellipsoid splat and its bilateral filter only
-            channels = screen_space_inputs(x, radius, cam, p, local.ss, t, ellipsoids=ellipsoids,
+            channels = screen_space_inputs(x_views, radius, cam, p, local.ss, t, ellipsoids=ellipsoids,
                                            **({} if every_filter else {"filters": None,
                                                                        "aniso_filters": ("bilateral",)}))
             if p.target == "raytrace":

@@ -391,3 +391,21 @@ def test_buffers_are_reused_while_their_size_stays_and_replaced_when_it_changes(
             np.testing.assert_array_equal(got[key], want[key], err_msg=key)
     assert len(ss._buffers) <= len(names) + 3  # plus the ellipsoid splat's normals and shapes, no more
     assert ss._buffers["view_shapes"][1].shape[0] == 1200
+
+
+def test_positions_on_the_device_splat_as_host_positions(ss):
+    """A GPU's dataset uploads a frame's positions once for all its views: the sphere splat then
+    moves them into view space on the device (``view_centres``). On the CPU's Warp arrays every
+    map equals the host way's to a float32 ulp of the centres (here: exactly)."""
+    import warp as wp
+
+    rng = np.random.default_rng(12)
+    x = (rng.normal(size=(4000, 3)) * (0.06, 0.03, 0.05) + (0.01, -0.02, -0.55)).astype(np.float32)
+    cam = Camera(look_at((0.15, 0.1, -0.3), (0.01, -0.02, -0.55)), 40.0, 96, 96)
+    host = ss.inputs(x, R, cam, DatasetConfig(), filters=("bilateral", "nrf"))
+    kept = ss.inputs(wp.array(x, dtype=wp.vec3, device="cpu"), R, cam, DatasetConfig(), filters=("bilateral", "nrf"))
+    assert host["A"].sum() > 1000
+    assert (kept["A"] != host["A"]).sum() <= 2  # a centre an ulp away may move a pixel on the rim
+    both = (kept["A"] > 0) & (host["A"] > 0)
+    for key in host:
+        np.testing.assert_allclose(kept[key][both], host[key][both], atol=1e-5, err_msg=key)

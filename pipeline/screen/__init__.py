@@ -130,13 +130,26 @@ class ScreenSpace:
         thickness.zero_()
         return depth, mask, thickness
 
-    def _splat(self, positions_world: np.ndarray, radius: float, camera: Camera) -> tuple[wp.array, ...]:
+    def _view_points(self, points_world: np.ndarray | wp.array, camera: Camera) -> wp.array:
+        """World points in view space, float32 on the device: host points transformed on the host
+        (``Camera.to_view``) and uploaded; points already on the device (a GPU's frame, uploaded
+        once for all its views) transformed there in float64 (``view_centres``: within a float32
+        ulp of the host's)."""
+        if not isinstance(points_world, wp.array):
+            return wp.array(camera.to_view(np.asarray(points_world, np.float64)).astype(np.float32), dtype=wp.vec3,
+                            device=self.device)
+        out = self._buffer("view_centres", len(points_world), wp.vec3)
+        self.launch(K.view_centres, len(points_world), [
+            points_world, wp.mat33d(*np.asarray(camera.view[:3, :3], np.float64).ravel()),
+            wp.vec3d(*np.asarray(camera.view[:3, 3], np.float64)), out])
+        return out
+
+    def _splat(self, positions_world: np.ndarray | wp.array, radius: float, camera: Camera) -> tuple[wp.array, ...]:
         w, h = camera.width, camera.height
         depth, mask, thickness = self._splat_buffers(w * h)
         n = len(positions_world)
         if n:
-            centers = wp.array(camera.to_view(np.asarray(positions_world, np.float64)).astype(np.float32),
-                               dtype=wp.vec3, device=self.device)
+            centers = self._view_points(positions_world, camera)
             bands = row_bands(self.launch, h)
             self.launch.tasks(K.splat_spheres, n, [[centers, radius, camera.focal_px, w, h, r0, r1, depth, thickness]
                                                    for r0, r1 in bands])
@@ -152,14 +165,10 @@ class ScreenSpace:
         n = len(ellipsoids.centres)
         if n:
             rot = wp.mat33d(*np.asarray(camera.view[:3, :3], np.float64).ravel())
+            centres = self._view_points(ellipsoids.centres, camera)
             if isinstance(ellipsoids.centres, wp.array):  # on the device: read in place
-                centres = self._buffer("view_centres", n, wp.vec3)
-                self.launch(K.view_centres, n, [ellipsoids.centres, rot,
-                                                wp.vec3d(*np.asarray(camera.view[:3, 3], np.float64)), centres])
                 world_shapes, bounds = ellipsoids.shapes, ellipsoids.bounds
             else:
-                centres = wp.array(camera.to_view(np.asarray(ellipsoids.centres, np.float64)).astype(np.float32),
-                                   dtype=wp.vec3, device=self.device)
                 world_shapes = wp.array(np.asarray(ellipsoids.shapes, np.float32), dtype=wp.mat33, device=self.device)
                 bounds = wp.array(np.asarray(ellipsoids.bounds, np.float32), dtype=float, device=self.device)
             # the shapes turn into view space on the device (a host einsum took 15-20 ms for 49k)
@@ -229,7 +238,7 @@ class ScreenSpace:
 
     # ---- NumPy API ------------------------------------------------------------------------------
 
-    def inputs(self, positions_world: np.ndarray, radius: float, camera: Camera, p: DatasetConfig,
+    def inputs(self, positions_world: np.ndarray | wp.array, radius: float, camera: Camera, p: DatasetConfig,
                filters: tuple[str, ...] = FILTERS, timings: Timings | None = None,
                ellipsoids: Ellipsoids | None = None, on_device: bool = False) -> dict[str, np.ndarray]:
         """Splat, filter and differentiate one view: ``Z``, ``A``, ``thickness`` and per filter
