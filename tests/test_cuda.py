@@ -32,9 +32,10 @@ def fill_with(value: float, out: wp.array(dtype=float)):
     out[wp.tid()] = value
 
 
-def _busy_gpu() -> None:
-    """Keep Warp's stream busy, so that a download which does not wait returns before its data lands."""
-    wp.launch(hold_the_gpu, 1, [20_000_000, wp.zeros(1, dtype=float, device="cuda:0")], device="cuda:0")
+def _busy_gpu(loops: int = 20_000_000) -> None:
+    """Keep the current stream busy (tens of milliseconds by default), so that a download which does
+    not wait returns before its data lands."""
+    wp.launch(hold_the_gpu, 1, [loops, wp.zeros(1, dtype=float, device="cuda:0")], device="cuda:0")
 
 
 def _blob(n: int = 3000, seed: int = 0) -> np.ndarray:
@@ -130,16 +131,31 @@ def test_pipelined_frames_on_the_gpu_arrive_in_order(tmp_path):
     solver.close()
 
 
-@pytest.mark.parametrize("method, camera", [("nrf", "static"), ("refined", "static"), ("refined", "orbit")])
-def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch, method, camera):
+@pytest.mark.parametrize("method, camera, held", [("nrf", "static", False), ("refined", "static", False),
+                                                  ("refined", "orbit", False), ("refined", "orbit", True)])
+def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch, method, camera, held):
     """The render stage on the GPU (the refined frame and its motion pass kept on the device there)
     writes the normals and motion vectors the CPU does, to the rounding of two simulations; with a
     turning camera too (its motion made on the device). No scene background: the GPU machine's
     image has no pyrender (nor EGL) for it; and no videos: imageio-ffmpeg's wheel (68 MB) cannot
-    travel there, so an empty file stands in for each (the frames are what is compared)."""
+    travel there, so an empty file stands in for each (the frames are what is compared).
+
+    ``held``: the GPU is held for a while before every Warp launch of the render, so any host read
+    of device output that does not wait for it (a download, a hand-over between streams) would
+    read memory not yet written, and the frames would differ."""
+    from pipeline.parallel import Launcher
     from tests.conftest import write_config
 
     monkeypatch.setattr("pipeline.renderer.write_video", lambda path, frames, fps: Path(path).write_bytes(b""))
+    if held:
+        launch = Launcher.__call__
+
+        def held_launch(self, kernel, n, inputs):
+            if not self.cpu:
+                _busy_gpu(2_000_000)
+            return launch(self, kernel, n, inputs)
+
+        monkeypatch.setattr(Launcher, "__call__", held_launch)
 
     scene = {"name": "tiny_dam", "domain_lo": [0, 0, 0], "domain_hi": [0.6, 0.5, 0.3],
              "fluid": [{"shape": "box", "lo": [0, 0, 0], "hi": [0.2, 0.3, 0.3]}], "cameras": CAMERAS}
