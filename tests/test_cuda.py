@@ -38,6 +38,20 @@ def _busy_gpu(loops: int = 20_000_000) -> None:
     wp.launch(hold_the_gpu, 1, [loops, wp.zeros(1, dtype=float, device="cuda:0")], device="cuda:0")
 
 
+def _hold_every_launch(monkeypatch) -> None:
+    """Hold the GPU for a few milliseconds before every Warp launch through a ``Launcher`` on CUDA."""
+    from pipeline.parallel import Launcher
+
+    launch = Launcher.__call__
+
+    def held_launch(self, kernel, n, inputs):
+        if not self.cpu:
+            _busy_gpu(2_000_000)
+        return launch(self, kernel, n, inputs)
+
+    monkeypatch.setattr(Launcher, "__call__", held_launch)
+
+
 def _blob(n: int = 3000, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return (rng.normal(size=(n, 3)) * 0.05 + (0.0, 0.0, -0.6)).astype(np.float32)
@@ -143,19 +157,11 @@ def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch,
     ``held``: the GPU is held for a while before every Warp launch of the render, so any host read
     of device output that does not wait for it (a download, a hand-over between streams) would
     read memory not yet written, and the frames would differ."""
-    from pipeline.parallel import Launcher
     from tests.conftest import write_config
 
     monkeypatch.setattr("pipeline.renderer.write_video", lambda path, frames, fps: Path(path).write_bytes(b""))
     if held:
-        launch = Launcher.__call__
-
-        def held_launch(self, kernel, n, inputs):
-            if not self.cpu:
-                _busy_gpu(2_000_000)
-            return launch(self, kernel, n, inputs)
-
-        monkeypatch.setattr(Launcher, "__call__", held_launch)
+        _hold_every_launch(monkeypatch)
 
     scene = {"name": "tiny_dam", "domain_lo": [0, 0, 0], "domain_hi": [0.6, 0.5, 0.3],
              "fluid": [{"shape": "box", "lo": [0, 0, 0], "hi": [0.2, 0.3, 0.3]}], "cameras": CAMERAS}
@@ -182,9 +188,15 @@ def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch,
     assert np.median(np.abs(v_gpu - v_cpu)) < 0.05
 
 
-def test_dataset_stage_on_the_gpu_matches_the_cpu(tmp_path, monkeypatch):
-    """Inputs and mesh targets (Warp's marching cubes on CUDA, scikit-image on the CPU) agree."""
+@pytest.mark.parametrize("held", [False, True])
+def test_dataset_stage_on_the_gpu_matches_the_cpu(tmp_path, monkeypatch, held):
+    """Inputs and mesh targets (Warp's marching cubes on CUDA, scikit-image on the CPU) agree.
+    ``held``: the GPU is held before every Warp launch (``_hold_every_launch``), so a view that the
+    writer took before its copies landed would differ."""
     from tests.conftest import write_config
+
+    if held:
+        _hold_every_launch(monkeypatch)
 
     scene = {"name": "tiny_dam", "domain_lo": [0, 0, 0], "domain_hi": [0.6, 0.5, 0.3],
              "fluid": [{"shape": "box", "lo": [0, 0, 0], "hi": [0.2, 0.3, 0.3]}], "cameras": CAMERAS}
@@ -203,6 +215,12 @@ def test_dataset_stage_on_the_gpu_matches_the_cpu(tmp_path, monkeypatch):
         dots = np.sum(stack(a, "target.N.")[both] * stack(b, "target.N.")[both], -1)
         assert np.degrees(np.arccos(np.clip(dots, -1, 1))).mean() < 0.5
         np.testing.assert_allclose(b["target.Z"][both], a["target.Z"][both], atol=1e-4)
+        # the inputs: the sphere splat and a filter of it, the ellipsoid splat (kept on the GPU) and its own
+        for raw, filtered in (("", "bilateral.Z"), ("aniso.", "aniso_bilateral.Z")):
+            both = (a[f"{raw}A"] > 0) & (b[f"{raw}A"] > 0)
+            assert both.sum() > 0.97 * max((a[f"{raw}A"] > 0).sum(), (b[f"{raw}A"] > 0).sum()) > 0, raw
+            for key in (f"{raw}Z", filtered):
+                np.testing.assert_allclose(b[key][both], a[key][both], atol=1e-4, err_msg=key)
 
 
 def test_refine_on_the_gpu_keeps_its_post_processing_there_and_matches_the_cpu():
