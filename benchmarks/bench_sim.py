@@ -38,6 +38,7 @@ solver runs on the CPU, as they do.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import json
 import math
@@ -98,17 +99,19 @@ class KernelTimer:
 
 
 # -- the project's solver ---------------------------------------------------------------------
-def project_solver(particles: int, threads: int, device: str, seed: int = 0) -> PBFSolver:
-    """The project's PBF solver on the benchmark's dam break."""
-    return PBFSolver(dam_break.scene(), dam_break.params(particles, threads), device, seed=seed)
+def project_solver(particles: int, threads: int, device: str, seed: int = 0, pair_passes: str = "auto") -> PBFSolver:
+    """The project's PBF solver on the benchmark's dam break (``simulate.pair_passes``: auto, scatter
+    or gather)."""
+    params = dataclasses.replace(dam_break.params(particles, threads), pair_passes=pair_passes)
+    return PBFSolver(dam_break.scene(), params, device, seed=seed)
 
 
 def measure_project(particles: int, steps: int, threads: int, device: str, warmup: int = dam_break.WARMUP_STEPS,
-                    profile: bool = False) -> tuple[Measurement, dict[str, float]]:
+                    profile: bool = False, pair_passes: str = "auto") -> tuple[Measurement, dict[str, float]]:
     """Step the project's solver; its measurement and, with ``profile``, ms/step per kernel."""
     init_warp((K,), device)
     before = dam_break.resident_bytes()
-    solver = project_solver(particles, threads, device)
+    solver = project_solver(particles, threads, device, pair_passes=pair_passes)
     for _ in range(warmup):  # compile, first sorts, the column starts to fall
         solver.step()
     wp.synchronize()
@@ -121,8 +124,10 @@ def measure_project(particles: int, steps: int, threads: int, device: str, warmu
     if profile:
         kernels = {key: ms / steps for key, ms in solver.launch.ms.items()}
         solver.launch = solver.launch.launch
-    result = Measurement("project PBF (Warp)", solver.n, steps, seconds, rates, memory, solver.launch.threads,
-                         {"device": device, "radius": solver.radius, "h": solver.h})
+    name = "project PBF (Warp)" if pair_passes == "auto" else f"project PBF ({pair_passes})"
+    result = Measurement(name, solver.n, steps, seconds, rates, memory, solver.launch.threads,
+                         {"device": device, "radius": solver.radius, "h": solver.h,
+                          "pair passes": "gather" if solver.gather else "scatter"})
     solver.close()
     assert math.isfinite(result.steps_per_s)
     return result, kernels
@@ -207,7 +212,7 @@ def describe(m: Measurement) -> str:
     if "pysplishsplash" in e:
         its = ", ".join(f"{k.split(' - ')[-1]} {v:g}" for k, v in e["mean_iterations"].items())
         return f"pysplishsplash {e['pysplishsplash']}, mean {its}"
-    return f"Warp {wp.config.version}, {e.get('device', 'cpu')}"
+    return f"Warp {wp.config.version}, {e.get('device', 'cpu')}, {e.get('pair passes', 'scatter')} pair passes"
 
 
 def print_side_by_side(rounds: list[list[Measurement]]) -> None:
@@ -242,7 +247,11 @@ def peers_mode(args: argparse.Namespace, threads: int) -> None:
     extra = [] if device == "cpu" else ["--arch", "cuda"]
     for r in range(args.repeat):
         project, _ = measure_project(args.particles, args.steps, threads, device)
-        results = [project] + [run_peer(peer, args.particles, args.steps, threads, extra=extra) for peer in peers]
+        # on a GPU the default gather passes, and the scatter ones beside them (the first column's ratio)
+        scatter = [] if device == "cpu" else [measure_project(args.particles, args.steps, threads, device,
+                                                              pair_passes="scatter")[0]]
+        results = [project, *scatter] + [run_peer(peer, args.particles, args.steps, threads, extra=extra)
+                                         for peer in peers]
         rounds.append(results)
         print(f"round {r + 1}/{args.repeat}: " + ", ".join(f"{m.name} {m.steps_per_s:.2f}" for m in results)
               + f" steps/s; load average {load()}", flush=True)
@@ -437,6 +446,8 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=dam_break.WARMUP_STEPS, help="untimed steps first")
     parser.add_argument("--threads", type=int, default=0, help="CPU threads (0: one per core)")
     parser.add_argument("--profile", action="store_true", help="time each kernel (adds a sync per launch)")
+    parser.add_argument("--pair-passes", choices=("auto", "scatter", "gather"), default="auto",
+                        help="simulate.pair_passes (auto: gather on CUDA, scatter on the CPU)")
     parser.add_argument("--peers", action="store_true", help="also run Taichi and SPlisHSPlasH, print ratios")
     parser.add_argument("--repeat", type=int, default=1, help="--peers: alternate the round this many times")
     parser.add_argument("--scaling", action="store_true", help="10k-1M particles, the project and its peers")
@@ -464,7 +475,8 @@ def main() -> None:
         gang_mode(args, threads)
     else:
         device = warp_device(choose_device(args.device or "auto")) if not args.json else "cpu"
-        result, kernels = measure_project(args.particles, args.steps, threads, device, args.warmup, args.profile)
+        result, kernels = measure_project(args.particles, args.steps, threads, device, args.warmup, args.profile,
+                                          args.pair_passes)
         if args.json:
             print(result.to_json())
         else:

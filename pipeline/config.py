@@ -219,6 +219,13 @@ class SimulateConfig:
     half of all its neighbours (a full neighbourhood at rest density holds about 30)."""
     threads: int = Field(0, ge=0)
     """CPU threads for chunked kernel launches (0: one per core)."""
+    pair_passes: Literal["auto", "scatter", "gather"] = "auto"
+    """How the solver's pair passes sum: 'scatter' over a half list, each pair once and its share
+    added to both ends (on the CPU in race-free phases, bit-identical for a config and thread count;
+    on CUDA with float atomics, so GPU runs agree only to rounding); 'gather' over a full list,
+    each particle summing its own pairs (no atomics, half the launches, GPU runs repeat exactly;
+    twice the pair arithmetic); 'auto': gather on CUDA, scatter on the CPU. Both give the same
+    physics, to the rounding of their sums' order."""
 
 
 @dataclass(frozen=True, config=_RULES)

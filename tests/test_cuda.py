@@ -121,9 +121,32 @@ def test_pbf_frame_on_the_gpu_matches_the_cpu_to_rounding():
         solver.close()
     (xc, vc), (xg, vg) = states["cpu"], states["cuda:0"]
     assert xc.shape == xg.shape
-    # float atomics sum neighbours in another order on the GPU: agreement to rounding, not bits
+    # the GPU gathers over full lists, the CPU scatters over half lists: sums in another order,
+    # agreement to rounding, not bits
     np.testing.assert_allclose(xg, xc, atol=1e-4)
     np.testing.assert_allclose(vg, vc, atol=1e-2)
+
+
+def test_pbf_on_the_gpu_repeats_bit_for_bit_and_its_scatter_way_agrees():
+    """The GPU's default gather passes sum each particle's pairs in list order, so two runs are
+    bit-identical (the scatter way's float atomics are not); the scatter way there still gives the
+    same flow to rounding."""
+    from pipeline.sim.pbf import PBFSolver
+
+    scene = SceneConfig(name="t", cameras=from_dict(Cameras, CAMERAS), domain_lo=(0, 0, 0), domain_hi=(0.4, 0.6, 0.3),
+                        fluid=(FluidShape(shape="box", lo=(0, 0, 0), hi=(0.12, 0.3, 0.3)),))
+    states = []
+    for passes in ("auto", "auto", "scatter"):
+        params = SimulateConfig(particle_radius=0.0125, frames=2, pair_passes=passes)
+        solver = PBFSolver(scene, params, "cuda:0", seed=0)
+        assert solver.gather == (passes == "auto")
+        for f in (1, 2):
+            solver.advance_frame(f)
+        states.append(solver.state())
+        solver.close()
+    for a, b in zip(states[0], states[1], strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(states[2][0], states[0][0], atol=1e-3)
 
 
 def test_pipelined_frames_on_the_gpu_arrive_in_order(tmp_path):

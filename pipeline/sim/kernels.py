@@ -858,6 +858,243 @@ def viscosity_finish(
                         v_out)
 
 
+# -- the gather passes (full lists; CUDA's default) -------------------------------------------------
+# Each particle walks its full neighbour list and sums its own pairs, then finishes itself in the
+# same kernel: no atomics (the scatter passes' float atomics, 4-6 a pair end, bound a GPU step),
+# half the launches, and sums in a fixed order, so GPU runs repeat bit for bit. A pair's term is
+# the same IEEE operations on the same operands as the scatter's share for either end (the spiky
+# gradient is odd, so g(x_j - x_i) = -g(x_i - x_j) exactly), so the two ways differ only in the
+# order of their sums. A kernel reads only what no thread of it writes (positions in the density
+# pass, multipliers in the correction pass, velocities in the two velocity passes), so finishing in
+# place is race-free.
+
+
+@wp.func
+def pair_values(xi: wp.vec3, xj: wp.vec3, h: float, hh: float, poly6_coef: float, grad_coef: float) -> wp.vec4:
+    """(g, W) of r = x_i - x_j as ``PAIR_GEOMETRY`` computes them: g = grad_coef (h - |r|)^2 r / |r|,
+    W = poly6_coef (h^2 - |r|^2)^3, both 0 past h."""
+    r = xi - xj
+    r2 = wp.length_sq(r)
+    d = wp.max(hh - r2, 0.0)
+    rl = wp.max(wp.sqrt(r2), 1.0e-9)
+    e = wp.max(h - rl, 0.0)
+    f = grad_coef * e * e / rl
+    return wp.vec4(r[0] * f, r[1] * f, r[2] * f, poly6_coef * d * d * d)
+
+
+@wp.func
+def artificial_pressure(w: float, corr_k: float, inv_corr_w_dq: float, corr_n: int) -> float:
+    """s_corr = -k (W / W(dq))^n, as the density loop caches it (0 without the term)."""
+    s = float(0.0)
+    if corr_k > 0.0:
+        ratio = w * inv_corr_w_dq
+        if corr_n == 4:
+            ratio2 = ratio * ratio
+            s = -corr_k * ratio2 * ratio2
+        else:
+            corr = float(1.0)
+            for _ in range(corr_n):
+                corr = corr * ratio
+            s = -corr_k * corr
+    return s
+
+
+@wp.kernel
+def find_all_neighbours(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    cell_start: wp.array(dtype=int),
+    lo: wp.vec3,
+    inv_cell: float,
+    dims: wp.vec3i,
+    reach: int,
+    h: float,
+    max_neighbours: int,
+    neighbour_count: wp.array(dtype=int),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+):
+    """Full neighbour list: for each particle k every other particle within h, in ascending order
+    (rows of cells are contiguous index ranges, visited z, y ascending), in k's own
+    ``max_neighbours`` slots."""
+    k = wp.tid() + offset
+    xk = x_pred[k]
+    c = cell_coord(xk, lo, inv_cell, dims)
+    base = k * max_neighbours
+    h2 = h * h
+    x0 = wp.max(c[0] - reach, 0)
+    x1 = wp.min(c[0] + reach, dims[0] - 1)
+    count = int(0)
+    for z in range(wp.max(c[2] - reach, 0), wp.min(c[2] + reach, dims[2] - 1) + 1):
+        for y in range(wp.max(c[1] - reach, 0), wp.min(c[1] + reach, dims[1] - 1) + 1):
+            row = (z * dims[1] + y) * dims[0]
+            for j in range(cell_start[row + x0], cell_start[row + x1 + 1]):
+                if j != k and wp.length_sq(x_pred[j] - xk) < h2 and count < max_neighbours:
+                    neighbour_index[base + count] = j
+                    count += 1
+    neighbour_count[k] = count
+    neighbour_start[k] = base
+    neighbour_end[k] = base + count
+
+
+@wp.kernel
+def density_gather(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    h: float,
+    poly6_coef: float,
+    grad_coef: float,
+    mass: float,
+    corr_k: float,
+    inv_corr_w_dq: float,
+    corr_n: int,
+    pair: wp.array(dtype=wp.vec4),
+    acc: wp.array(dtype=wp.vec4),
+    acc_sq: wp.array(dtype=float),
+    self_density: float,
+    vol: float,
+    rest_density: float,
+    relaxation: float,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    wall: wp.array(dtype=wp.vec2),
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    particle_rho: wp.array(dtype=float),
+    particle_lambda: wp.array(dtype=float),
+    wall_grad: wp.array(dtype=wp.vec3),
+):
+    """``density_pairs`` and ``density_finish`` of particle i over its full list: (sum g, sum m W),
+    sum |g|^2 and each pair's (g, s_corr) cached for the correction pass; then rho_i and lambda_i."""
+    i = wp.tid() + offset
+    xi = x_pred[i]
+    hh = h * h
+    total = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    sq = float(0.0)
+    for p in range(neighbour_start[i], neighbour_end[i]):
+        g = pair_values(xi, x_pred[neighbour_index[p]], h, hh, poly6_coef, grad_coef)
+        total += wp.vec4(g[0], g[1], g[2], mass * g[3])
+        sq += g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
+        pair[p] = wp.vec4(g[0], g[1], g[2], artificial_pressure(g[3], corr_k, inv_corr_w_dq, corr_n))
+    acc[i] = total
+    acc_sq[i] = sq
+    density_finish_at(i, x_pred, acc, acc_sq, h, self_density, vol, rest_density, relaxation, lo, hi, wall, spheres,
+                      box_lo, box_hi, particle_rho, particle_lambda, wall_grad)
+
+
+@wp.kernel
+def correction_gather(
+    offset: int,
+    particle_lambda: wp.array(dtype=float),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    pair: wp.array(dtype=wp.vec4),
+    acc_dp: wp.array(dtype=wp.vec3),
+    x_pred: wp.array(dtype=wp.vec3),
+    wall_grad: wp.array(dtype=wp.vec3),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    radius: float,
+    spheres: wp.array(dtype=wp.vec4),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
+    particle_x: wp.array(dtype=wp.vec3),
+    inv_dt: float,
+    last: int,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """``correction_pairs`` and ``correction_finish`` of particle i over its full list:
+    dp_i = sum_j (lambda_i + lambda_j + s_corr) g_ij, then the corrected position (in place)."""
+    i = wp.tid() + offset
+    li = particle_lambda[i]
+    dp = wp.vec3(0.0, 0.0, 0.0)
+    for p in range(neighbour_start[i], neighbour_end[i]):
+        q = pair[p]
+        dp += wp.vec3(q[0], q[1], q[2]) * (li + particle_lambda[neighbour_index[p]] + q[3])
+    acc_dp[i] = dp
+    correction_finish_at(i, x_pred, particle_lambda, acc_dp, wall_grad, lo, hi, radius, spheres, box_lo, box_hi,
+                         particle_x, inv_dt, last, v_out)
+
+
+@wp.kernel
+def vorticity_gather(
+    offset: int,
+    x_pred: wp.array(dtype=wp.vec3),
+    particle_v: wp.array(dtype=wp.vec3),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    h: float,
+    poly6_coef: float,
+    grad_coef: float,
+    vol: float,
+    pair: wp.array(dtype=wp.vec4),
+    omega: wp.array(dtype=wp.vec3),
+    particle_rho: wp.array(dtype=float),
+    mass: float,
+    omega_length: wp.array(dtype=float),
+    particle_vol: wp.array(dtype=float),
+):
+    """``vorticity_pairs`` and ``vorticity_finish`` of particle i over its full list: omega_i and
+    each pair's (grad W, W) cached for the viscosity pass; then |omega_i| and V_i."""
+    i = wp.tid() + offset
+    xi = x_pred[i]
+    vi = particle_v[i]
+    hh = h * h
+    total = wp.vec3(0.0, 0.0, 0.0)
+    for p in range(neighbour_start[i], neighbour_end[i]):
+        j = neighbour_index[p]
+        g = pair_values(xi, x_pred[j], h, hh, poly6_coef, grad_coef)
+        d = particle_v[j] - vi
+        total += wp.vec3((d[1] * -g[2] - d[2] * -g[1]) * vol, (d[2] * -g[0] - d[0] * -g[2]) * vol,
+                         (d[0] * -g[1] - d[1] * -g[0]) * vol)
+        pair[p] = g
+    omega[i] = total
+    vorticity_finish_at(i, omega, particle_rho, mass, omega_length, particle_vol)
+
+
+@wp.kernel
+def viscosity_gather(
+    offset: int,
+    particle_v: wp.array(dtype=wp.vec3),
+    omega_length: wp.array(dtype=float),
+    particle_vol: wp.array(dtype=float),
+    neighbour_start: wp.array(dtype=int),
+    neighbour_end: wp.array(dtype=int),
+    neighbour_index: wp.array(dtype=int),
+    pair: wp.array(dtype=wp.vec4),
+    acc_eta: wp.array(dtype=wp.vec3),
+    acc_visc: wp.array(dtype=wp.vec3),
+    particle_omega: wp.array(dtype=wp.vec3),
+    vorticity_eps: float,
+    xsph_c: float,
+    dt: float,
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """``viscosity_pairs`` and ``viscosity_finish`` of particle i over its full list: eta_i and the
+    XSPH sum, then the new velocity."""
+    i = wp.tid() + offset
+    vi = particle_v[i]
+    wi = omega_length[i]
+    eta = wp.vec3(0.0, 0.0, 0.0)
+    visc = wp.vec3(0.0, 0.0, 0.0)
+    for p in range(neighbour_start[i], neighbour_end[i]):
+        j = neighbour_index[p]
+        q = pair[p]
+        volj = particle_vol[j]
+        eta += wp.vec3(q[0], q[1], q[2]) * ((omega_length[j] - wi) * volj)
+        visc += (particle_v[j] - vi) * (q[3] * volj)
+    acc_eta[i] = eta
+    acc_visc[i] = visc
+    viscosity_finish_at(i, particle_v, particle_omega, acc_eta, acc_visc, vorticity_eps, xsph_c, dt, v_out)
+
+
 # -- the finish passes over a block, natively (CPU, walls only) ------------------------------------
 # ``density_finish_at`` and ``correction_finish_at`` for a whole block in loops the compiler
 # vectorises across particles (the scalar Warp functions took about 20 ns a particle, a fifth of a

@@ -87,6 +87,10 @@ class PBFSolver:
         self.n = 0
         self.step_index = 0
         self.launch = Launcher(device, params.threads, reuse=True)
+        # the pair passes: gather over full lists (CUDA's default) or scatter over half lists
+        self.gather = params.pair_passes == "gather" or (params.pair_passes == "auto" and not self.launch.cpu)
+        # a particle's list slots: its half list, or (gather) its whole neighbourhood
+        self.list_capacity = params.max_neighbours * (2 if self.gather else 1)
         # the neighbour search's AVX-512 row scan where the CPU has one (False: the scalar scan)
         self.vector_scan = True
         # the CPU runs a step's pair passes as one gang launch (False: a launch per phase, the same sums)
@@ -97,7 +101,7 @@ class PBFSolver:
 
     # -- memory -----------------------------------------------------------------------------
     def _allocate(self) -> None:
-        cap, dev, nb = self.capacity, self.device, self.params.max_neighbours
+        cap, dev, nb = self.capacity, self.device, self.list_capacity
 
         def vec() -> wp.array:
             return wp.zeros(cap, dtype=wp.vec3, device=dev)
@@ -214,6 +218,11 @@ class PBFSolver:
         self.particle_x, self.x_sorted = self.x_sorted, self.particle_x
         self.particle_id, self.id_sorted = self.id_sorted, self.particle_id
         self.x_pred, self.x_pred_other = self.x_pred_other, self.x_pred
+        if self.gather:
+            launch(K.find_all_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h,
+                                              self.list_capacity, self.neighbour_count, self.neighbour_start,
+                                              self.neighbour_end, self.neighbour_index])
+            return [(0, n)]
         self.neighbour_cursor.zero_()
         launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
                                       int(self.vector_scan), int(launch.cpu), self.neighbour_cursor,
@@ -239,7 +248,9 @@ class PBFSolver:
             self.step_index += 1
             return
         blocks = self.predict_and_search()
-        if launch.cpu and self.gang:
+        if self.gather:
+            self._gather_passes()
+        elif launch.cpu and self.gang:
             self._gang_passes(blocks)
         else:
             launch.scatter_passes(blocks, self._passes())
@@ -285,6 +296,29 @@ class PBFSolver:
             for name, array in arrays.items():
                 setattr(struct, name, array)
         return struct
+
+    def _gather_passes(self) -> None:
+        """The step's passes over full lists, each particle summing its own pairs and finishing
+        itself (``K.*_gather``): two launches an iteration, two for the velocities."""
+        p, n, launch = self.params, self.n, self.launch
+        obstacles = [self.spheres, self.box_lo, self.box_hi]
+        nb = [self.neighbour_start, self.neighbour_end, self.neighbour_index]
+        vol = self.mass / p.rest_density
+        for it in range(p.iterations):
+            launch(K.density_gather, n, [
+                self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef * vol, self.mass, p.artificial_pressure_k,
+                1.0 / self.corr_w_dq, p.artificial_pressure_n, self.pair, self.acc4, self.acc1, self.self_density,
+                vol, p.rest_density, p.relaxation, self.lo, self.hi, self.wall_table, *obstacles, self.particle_rho,
+                self.particle_lambda, self.wall_grad])
+            launch(K.correction_gather, n, [
+                self.particle_lambda, *nb, self.pair, self.acc3a, self.x_pred, self.wall_grad, self.lo, self.hi,
+                self.radius, *obstacles, self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1), self.v_tmp])
+        launch(K.vorticity_gather, n, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol,
+                                       self.pair, self.particle_omega, self.particle_rho, self.mass,
+                                       self.omega_length, self.particle_vol])
+        launch(K.viscosity_gather, n, [self.v_tmp, self.omega_length, self.particle_vol, *nb, self.pair, self.acc3a,
+                                       self.acc3b, self.particle_omega, p.vorticity_epsilon, p.xsph_viscosity, self.dt,
+                                       self.particle_v])
 
     def _passes(self) -> list[tuple]:
         """The step's pair passes for ``Launcher.scatter_passes`` (CUDA: one block, atomics)."""
@@ -365,8 +399,8 @@ class PBFSolver:
         ratio = float(d[K.DIAG_MAX_DENSITY]) / self.params.rest_density if n else 0.0
         if ratio > 3.0:
             raise SimulationError(f"blow-up at frame {frame}: density {ratio:.1f}x rest")
-        # the half list stores each pair once: a particle has twice as many neighbours on average
-        mean_nb = 2.0 * float(d[K.DIAG_NEIGHBOURS]) / n if n else 0.0
+        # a half list stores each pair once: a particle has twice as many neighbours on average
+        mean_nb = (1.0 if self.gather else 2.0) * float(d[K.DIAG_NEIGHBOURS]) / n if n else 0.0
         x, v = pending.x.numpy()[:n].copy(), pending.v.numpy()[:n].copy()
         return FrameStats(n, ratio, mean_nb), x, v
 
