@@ -11,7 +11,10 @@ A ratio is printed only against a peer measured in the same run, on the same mac
   DFSPH on the same block (``peers/splishsplash.py``, through the ``pysplishsplash`` wheel).
   ``--repeat R`` alternates the whole round R times and reports medians. ``--peers --device cuda``
   runs the project's solver and Taichi's CUDA backend on the same GPU (the issue-13 comparison;
-  SPlisHSPlasH has no GPU backend and is left out).
+  SPlisHSPlasH has no GPU backend and is left out): the solver's default gather passes and its
+  scatter passes each round, so the first row's ratios are gather / scatter and gather / Taichi.
+- ``--pair-passes scatter|gather``: the project's measurement with those pair passes
+  (``simulate.pair_passes``; auto: gather on CUDA, scatter on the CPU).
 - ``--scaling``: the project, Taichi and SPlisHSPlasH's PBF at 10k, 50k, 200k and 1M particles,
   the same steps at every size, each in a fresh process: particle-steps/s and resident memory per
   particle, and a log-log plot (``--plot docs/images/sim_scaling.png``); about 8 minutes here.
