@@ -65,7 +65,7 @@ if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
         "$PY" -m pip install -q --no-index --no-deps --no-compile --target "${GPU_SITE:-/tmp/gpu/site}" .gpu/t/*.whl
     fi
     if "$PY" -c "import taichi" 2>/dev/null; then
-        step taichi 90 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
+        step taichi 120 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
     else
         echo "taichi             skipped: no taichi here (bash benchmarks/gpu_stage.sh, then a third call)"
     fi
