@@ -62,10 +62,8 @@ def main() -> None:
         print(f"  second half       {(views - half_views) / (wall - half_wall):8.2f} views/s  (frames "
               f"{args.frames // 2 + 1}-{args.frames}: their views over the extra wall time, the fixed costs cancel)")
     if traced is not None:
-        print(f"recorded with the profiler ({args.trace_frames} frames, the run's fixed costs and the profiler's "
-              "own included):")
-        print(traced.summary())
-        print("saved: " + ", ".join(map(str, traced.save(args.trace))))
+        print(traced.report(args.trace, f"{args.trace_frames} frames, the run's fixed costs and the profiler's own "
+                                        "included"))
 
 
 def _run(config: Path, scene: str, max_frames: int, record: bool = False) -> tuple[int, float, str, Trace]:

@@ -125,9 +125,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             rate, _, trace = loop(Path(tmp), config, device, refiner, x, v, r, args.trace_frames, False,
                                   args.orbit_deg, record=True)
-        print(f"recorded with the profiler ({rate:.2f} frames/s so, its own cost included):")
-        print(trace.summary())
-        print("saved: " + ", ".join(map(str, trace.save(args.trace))))
+        print(trace.report(args.trace, f"{rate:.2f} frames/s so, its own cost included"))
 
 
 if __name__ == "__main__":

@@ -80,10 +80,8 @@ def main() -> None:
         print(f"  second half       {rate:8.1f} steps/s  ({100 * rate / alone:.0f}% of the solver alone: frames "
               f"{args.frames // 2 + 1}-{args.frames}, the stage's fixed costs cancel)")
     if traced is not None:
-        print(f"recorded with the profiler ({args.trace_frames} frames, the stage's set-up and the profiler's own "
-              "cost included):")
-        print(traced.summary())
-        print("saved: " + ", ".join(map(str, traced.save(args.trace))))
+        print(traced.report(args.trace, f"{args.trace_frames} frames, the stage's set-up and the profiler's own "
+                                        "cost included"))
 
 
 def _stage(data_dir: Path, args: argparse.Namespace, frames: int, record: bool = False) -> tuple[int, float, Trace]:

@@ -67,6 +67,12 @@ class Trace:
             tmp.replace(path)
         return trace, text
 
+    def report(self, folder: str | Path, note: str) -> str:
+        """Save the trace and its summary into ``folder`` (``save``) and return what a benchmark
+        prints of them: a heading with ``note`` (what the recorded run held), the summary, the paths."""
+        saved = self.save(folder)
+        return f"recorded with the profiler ({note}):\n{self.summary()}\nsaved: " + ", ".join(map(str, saved))
+
     def _write_trace(self, path: Path) -> None:
         with gzip.open(path, "wt") as f:
             json.dump({"traceEvents": self.events, "units": self.units, "unit": self.unit}, f)

@@ -126,8 +126,10 @@ def test_a_recording_on_the_cpu_names_the_stage_timers_steps(tmp_path, capsys):
     steps = text.split("steps' host time (ms a frame): ")[1].splitlines()[0]
     assert "multiply" in steps and "add" in steps and "write" in steps
     assert "aten::mm" in text
-    gz, txt = trace.save(tmp_path)
-    assert gz.name == "loop.trace.json.gz" and txt.read_text().strip() == text
+    report = trace.report(tmp_path, "3 loops")
+    gz, txt = tmp_path / "loop.trace.json.gz", tmp_path / "loop.txt"
+    assert report == f"recorded with the profiler (3 loops):\n{text}\nsaved: {gz}, {txt}"
+    assert txt.read_text().strip() == text
     again = load_trace(gz)
     assert (again.name, again.units, again.unit) == ("loop", 3, "frame")
     assert again.summary() == text
