@@ -27,14 +27,15 @@ def scratch_config(source: str | Path, data_dir: Path, **sections: dict) -> Path
     return config
 
 
-def logged_summary(stage: str, config: Path, scene: str, pattern: str) -> re.Match:
-    """Run ``deep-ssfr STAGE`` on ``scene`` and match ``pattern`` in what it logged (its summary
-    line); a run that logs none stops the benchmark, showing the log."""
+def logged_summary(stage: str, config: Path, scene: str, pattern: str, force: bool = False) -> re.Match:
+    """Run ``deep-ssfr STAGE`` on ``scene`` (``force``: even if its output is cached) and match
+    ``pattern`` in what it logged (its summary line); a run that logs none stops the benchmark,
+    showing the log."""
     stream = io.StringIO()
     handler = logging.StreamHandler(stream)
     logging.getLogger("deep_ssfr").addHandler(handler)
     try:
-        assert cli.main([stage, "--config", str(config), "--scene", scene]) == 0
+        assert cli.main([stage, "--config", str(config), "--scene", scene, *(["--force"] if force else [])]) == 0
     finally:
         logging.getLogger("deep_ssfr").removeHandler(handler)
     found = re.search(pattern, stream.getvalue())
