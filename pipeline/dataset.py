@@ -27,7 +27,7 @@ from tqdm import tqdm
 from pipeline.cache import atomic_path
 from pipeline.camera import Camera, camera_for_frame, random_view
 from pipeline.config import DatasetConfig, SceneConfig
-from pipeline.executor import cluster_slots, run_tasks, shards
+from pipeline.executor import run_sharded
 from pipeline.exr import camera_attributes, read_exr, read_exr_header, write_exr
 from pipeline.frames import frame_name
 from pipeline.parallel import Launcher, init_warp
@@ -88,8 +88,7 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
     folder = Path(folder)
     if executor != "local":
         shard_of = functools.partial(build_dataset, folder, scene, p, frames, load, radius, device)
-        done = run_tasks(lambda sub: shard_of(subset=sub), shards(range(len(frames)), cluster_slots(executor, device)),
-                         executor, address, device)
+        done = run_sharded(lambda sub: shard_of(subset=sub), len(frames), executor, address, device)
         timings = Timings()
         for t in done:
             timings.merge(t)

@@ -1,9 +1,10 @@
 """Where per-frame work runs: in this process (``local``) or sharded over a Ray cluster (``ray``).
 
-With ``ray`` every task runs in a worker process of the cluster named by ``ray_address`` (a local
-one on this machine when empty), and writes its files straight into the stage's cache entry, so
-every node must see the same ``data_dir`` (shared storage). The driver keeps the entry's lock and
-writes its manifest once all tasks are back.
+With ``ray`` every task runs in a worker process of the cluster named by ``ray_address`` (empty:
+the one ``ray start`` made on this machine, else a local one for the run), and writes its files
+straight into the stage's cache entry, so every node must see the same ``data_dir`` (shared
+storage). The driver keeps the entry's lock and writes its manifest once all tasks are back; the
+work is cut into one shard per CPU of the cluster, counted once joined.
 
 On a GPU every task asks Ray for ``1 / TASKS_PER_GPU`` of one, and Ray gives it its own
 (``CUDA_VISIBLE_DEVICES`` set to it, so it is the task's ``cuda:0``); the work is cut into
@@ -15,9 +16,10 @@ crowd onto each node's first GPU while the others idle.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 log = logging.getLogger("deep_ssfr")
@@ -41,6 +43,52 @@ def shards(items: Sequence[T], count: int) -> list[list[T]]:
     return [list(items[bounds[k]:bounds[k + 1]]) for k in range(count)]
 
 
+_SCOPES: list[contextlib.ExitStack] = []
+
+
+@contextlib.contextmanager
+def cluster_scope() -> Iterator[None]:
+    """Ray started by work inside the block stays up until the block ends, rather than each call's
+    end, so a stage's scenes, sequences and sizes share one cluster (the command line opens one a
+    command)."""
+    with contextlib.ExitStack() as stack:
+        _SCOPES.append(stack)
+        try:
+            yield
+        finally:
+            _SCOPES.pop()
+
+
+@contextlib.contextmanager
+def connected(executor: str, address: str = "") -> Iterator[None]:
+    """Ray joined for the block when ``executor`` is ``ray``: the cluster at ``address`` (or
+    ``RAY_ADDRESS``; empty: the one ``ray start`` made on this machine, else a local one started
+    here). Already connected, it stays so; inside a :func:`cluster_scope` its end disconnects."""
+    if executor == "local":
+        yield
+        return
+    if executor != "ray":
+        raise ValueError(f"unknown executor {executor!r} (local or ray)")
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("executor 'ray' needs Ray: pip install 'deep-ssfr[scale]' (or ray)") from None
+    if ray.is_initialized():
+        yield
+        return
+    # no num_cpus: Ray refuses it when joining a cluster, and counts this machine's CPUs itself
+    ray.init(address=address or os.environ.get("RAY_ADDRESS") or None, include_dashboard=False,
+             configure_logging=False, log_to_driver=False, runtime_env={"env_vars": _worker_env()})
+    if _SCOPES:
+        _SCOPES[-1].callback(ray.shutdown)
+        yield
+        return
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
 def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local", address: str = "",
               device: str = "cpu") -> list[R]:
     """``fn(task)`` for every task, results in task order: here one after another (``local``), or
@@ -49,40 +97,40 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
     task holds a share of one GPU, which it sees as ``cuda:0``."""
     if executor == "local":
         return [fn(t) for t in tasks]
-    if executor != "ray":
-        raise ValueError(f"unknown executor {executor!r} (local or ray)")
-    try:
+    with connected(executor, address):
         import ray
-    except ImportError:
-        raise RuntimeError("executor 'ray' needs Ray: pip install 'deep-ssfr[scale]' (or ray)") from None
-    address = address or os.environ.get("RAY_ADDRESS", "")
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address=address or None, num_cpus=None if address else os.cpu_count(), include_dashboard=False,
-                 configure_logging=False, log_to_driver=False, runtime_env={"env_vars": _worker_env()})
-    log.info("ray: %d tasks on %s%s", len(tasks), address or "a local cluster",
-             f", {1 / TASKS_PER_GPU:g} GPU each" if _is_cuda(device) else "")
-    try:
+
+        have = ray.cluster_resources()
+        nodes = sum(1 for n in ray.nodes() if n.get("Alive"))
+        gpus = f", {have.get('GPU', 0):g} GPUs, {1 / TASKS_PER_GPU:g} a task" if _is_cuda(device) else ""
+        if _is_cuda(device) and have.get("GPU", 0) < 1 / TASKS_PER_GPU:  # its tasks would wait for ever
+            raise RuntimeError(f"the run's device is {device} but the Ray cluster at {address or 'this machine'} "
+                               "has no GPU: start its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
+        log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), address or "a local cluster", nodes,
+                 "s" * (nodes != 1), have.get("CPU", 0), gpus)
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(fn) if _is_cuda(device) else ray.remote(fn)
         return ray.get([remote.remote(t) for t in tasks])
-    finally:
-        if started:
-            ray.shutdown()
 
 
-def cluster_slots(executor: str, device: str = "cpu") -> int:
-    """How many tasks to cut the work into: the CPUs of this machine or of the Ray cluster, or on a
-    CUDA ``device`` ``TASKS_PER_GPU`` per GPU of the cluster (of this machine before Ray starts)."""
+def run_sharded(fn: Callable[[list[int]], R], count: int, executor: str, address: str = "",
+                device: str = "cpu") -> list[R]:
+    """``fn`` over ``range(count)`` cut into one contiguous shard per slot (:func:`cluster_slots`) of
+    the cluster it runs on, counted once connected: the driver's own CPUs say nothing of a cluster's."""
+    with connected(executor, address):
+        parts = shards(list(range(count)), cluster_slots(executor, device, address))
+        return run_tasks(fn, parts, executor, address, device)
+
+
+def cluster_slots(executor: str, device: str = "cpu", address: str = "") -> int:
+    """How many tasks to cut the work into: the CPUs of this machine or of the Ray cluster (joined
+    for the count if need be), or on a CUDA ``device`` ``TASKS_PER_GPU`` per GPU of it."""
     resource = "GPU" if _is_cuda(device) else "CPU"
     per = TASKS_PER_GPU if resource == "GPU" else 1
     if executor == "ray":
-        try:
+        with connected(executor, address):
             import ray
 
-            if ray.is_initialized():
-                return max(1, int(ray.cluster_resources().get(resource, 1) * per))
-        except ImportError:
-            pass
+            return max(1, int(ray.cluster_resources().get(resource, 1) * per))
     if resource == "GPU":
         import torch
 

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from pipeline.camera import Camera
 from pipeline.config import Config, RenderConfig
 from pipeline.device import warp_device
-from pipeline.executor import cluster_slots, run_tasks, shards
+from pipeline.executor import run_sharded
 from pipeline.frames import frame_name, spread
 from pipeline.media import contact_sheet, label, write_png, write_video
 from pipeline.methods import (
@@ -215,7 +215,6 @@ def render_sequence(folder: Path, name: str, around: Surroundings, config: Confi
     if config.executor == "local":
         return shard(None)
     timings = Timings()
-    parts = shards(list(range(len(frames))), cluster_slots(config.executor, device))
-    for _, t in run_tasks(shard, parts, config.executor, config.ray_address, device):
+    for _, t in run_sharded(shard, len(frames), config.executor, config.ray_address, device):
         timings.merge(t)
     return write_videos(Path(folder), name, frames, config.render), timings

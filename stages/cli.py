@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 import typer
 
 from pipeline.config import METHODS
+from pipeline.executor import cluster_scope
 from stages.common import StageOptions, make_run, stage_main
 
 app = typer.Typer(name="deep-ssfr", no_args_is_help=True, add_completion=False, rich_markup_mode=None,
@@ -40,7 +41,11 @@ def _run(stage: str, opts: StageOptions, *extra, module: str = "") -> None:
         for scene in run.loaded.scenes.values():
             module.ensure(run, scene, force=run.force)
 
-    if code := stage_main(stage, (lambda: module.main(opts, *extra)) if hasattr(module, "main") else each_scene):
+    def body() -> None:
+        with cluster_scope():  # one Ray cluster for the whole command, not one a scene or size
+            module.main(opts, *extra) if hasattr(module, "main") else each_scene()
+
+    if code := stage_main(stage, body):
         raise typer.Exit(code)
 
 

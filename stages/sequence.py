@@ -66,8 +66,11 @@ def _loaded(opts: StageOptions, req: Request) -> Loaded:
     render = dataclasses.replace(config.render, width=int(size[1]), height=int(size[2]), method=req.method,
                                  video_fps=req.fps, frame_stride=1, max_frames=0, comparison=True,
                                  background=req.background)
-    root = Path(req.out) / ".cache"
-    return Loaded(dataclasses.replace(config, render=render, data_dir=str(root)), {}, Path(opts.config), root)
+    # absolute: a Ray task on another node starts in a folder of its own
+    root = Path(req.out).resolve() / ".cache"
+    executor = {"executor": opts.executor} if opts.executor else {}
+    return Loaded(dataclasses.replace(config, render=render, data_dir=str(root), **executor), {}, Path(opts.config),
+                  root)
 
 
 def main(opts: StageOptions, req: Request) -> None:
