@@ -266,3 +266,24 @@ def test_torchrun_stage_claims_the_entry_on_rank_0_and_its_checkpoint_loads(tmp_
     _, err = again.communicate(timeout=120)
     assert again.returncode == 0 and "train: cached (2 epochs)" in err, err
     assert err.count("train: cached") == 1, "rank 1 logs warnings only"
+
+
+def test_a_process_group_that_cannot_form_says_what_to_set(monkeypatch):
+    """A failed join names the rank and the two settings of a node with several networks; with
+    GLOO_SOCKET_IFNAME unset, the interface that reaches the master is chosen before gloo binds."""
+    from pipeline.model import distributed
+
+    seen = {}
+
+    def refuse(backend, **_):
+        seen["ifname"] = os.environ.get("GLOO_SOCKET_IFNAME")
+        raise RuntimeError("Gloo connectFullMesh failed with timed out connecting")
+
+    monkeypatch.setattr(distributed.dist, "init_process_group", refuse)
+    monkeypatch.setattr(distributed, "_WORLD", None)
+    monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)
+    for k, v in {"WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1"}.items():
+        monkeypatch.setenv(k, v)
+    with pytest.raises(RuntimeError, match=r"\(rank 1 of 2\)\. .*--local-addr.*GLOO_SOCKET_IFNAME"):
+        distributed.start("cpu")
+    assert seen["ifname"] == "lo"

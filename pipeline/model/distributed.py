@@ -11,7 +11,10 @@ rank 0 queues for a cache entry's lock or validates an epoch.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
+import socket
+import struct
 from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
@@ -19,6 +22,8 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
+SIOCGIFADDR = 0x8915
+"""Linux's ioctl for an interface's (first) IPv4 address."""
 WAIT_TIMEOUT = timedelta(days=7)
 """How long a rank waits for rank 0 at a barrier (rank 0 may queue behind another run of the config)."""
 
@@ -65,6 +70,11 @@ class World:
         return {k: float(v) / self.size for k, v in zip(keys, total.tolist(), strict=True)}
 
 
+NETWORK_HINT = ("Where a node's name resolves to another network than the one its peers reach it on, start "
+                "each node's torchrun with --local-addr <its address there>, and set GLOO_SOCKET_IFNAME=<its "
+                "interface there> (NCCL_SOCKET_IFNAME too on GPUs) if the interface routing to the master is not "
+                "it: docs/training_at_scale.md")
+
 _WORLD: World | None = None
 _WAIT: Any = None
 
@@ -92,12 +102,40 @@ def start(device: str) -> World:
     cuda = torch.device(device).type == "cuda"
     if cuda:
         torch.cuda.set_device(local_rank)
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if cuda else "gloo")
-        atexit.register(stop)
-    _WAIT = dist.new_group(backend="gloo", timeout=WAIT_TIMEOUT)
+    if "GLOO_SOCKET_IFNAME" not in os.environ and (master := os.environ.get("MASTER_ADDR")):
+        # gloo otherwise binds the address this host's name resolves to: Debian's 127.0.1.1, or a
+        # network the other nodes cannot reach; the interface that routes to the master reaches them
+        if name := reaching_interface(master):
+            os.environ["GLOO_SOCKET_IFNAME"] = name
+    try:
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if cuda else "gloo")
+            atexit.register(stop)
+        _WAIT = dist.new_group(backend="gloo", timeout=WAIT_TIMEOUT)
+    except RuntimeError as exc:  # torch's DistError is one
+        raise RuntimeError(f"{exc} (rank {rank} of {size}). {NETWORK_HINT}") from exc
     _WORLD = World(rank, dist.get_world_size(), local_rank)
     return _WORLD
+
+
+def reaching_interface(host: str) -> str | None:
+    """The name of this machine's network interface whose IPv4 address the route to ``host`` leaves
+    from ("lo" for this machine itself); None where that cannot be told (no route, no such
+    interface, not Linux)."""
+    try:
+        import fcntl
+
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect((host, 9))  # a datagram socket's connect only picks the route: nothing is sent
+            local = s.getsockname()[0]
+            for _, name in socket.if_nameindex():
+                with contextlib.suppress(OSError):  # an interface without an IPv4 address
+                    request = struct.pack("256s", name.encode()[:15])
+                    if socket.inet_ntoa(fcntl.ioctl(s.fileno(), SIOCGIFADDR, request)[20:24]) == local:
+                        return name
+    except (ImportError, OSError):
+        pass
+    return None
 
 
 def stop() -> None:
