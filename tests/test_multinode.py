@@ -1,0 +1,251 @@
+"""Scale-out past one machine, on two network hosts of this machine (``tests/hosts.py``): a Ray
+cluster of two nodes (the head here with one CPU, a second node in a network namespace of its own
+with two, started in another folder) and torchrun over the same two hosts, each the way
+docs/scaling.md and docs/training_at_scale.md tell a user to start them. The hosts share the file
+system, as a cluster's nodes share storage."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import yaml
+
+from stages import cli
+from tests.conftest import ROOT
+from tests.hosts import Hosts, two_hosts
+
+pytestmark = pytest.mark.slow
+BIN = Path(sys.executable).parent
+ENV = {"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0", "DEEP_SSFR_DEVICE": "cpu"}
+
+
+def _free_port(host: str) -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def _wait_for_port(host: str, port: int, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s, contextlib.suppress(OSError):
+            s.settimeout(0.5)
+            s.connect((host, port))
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"{what} did not listen on {host}:{port} within {timeout:.0f} s")
+
+
+@dataclass
+class Cluster:
+    hosts: Hosts
+    address: str
+    env: dict[str, str]
+    """What a driver of this cluster needs in its environment (the nodes' token, the address)."""
+
+    def drive(self, code: str) -> object:
+        """Run ``code`` as a driver program here (a fresh process, as a user's would be) and return what
+        it printed last, read as JSON."""
+        done = subprocess.run([sys.executable, "-c", code], env={**os.environ, **self.env}, cwd=ROOT,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def hosts():
+    with two_hosts() as h:
+        yield h
+
+
+@pytest.fixture(scope="module")
+def cluster(hosts):
+    """``ray start --head`` here (1 CPU) and ``ray start --address`` there (2 CPUs), each blocking in
+    its own process group and folder, with a Ray temp folder of its own (short: Ray's sockets live
+    there). Ray 2.60 turns token authentication on for a cluster wherever ``~/.ray/auth_token``
+    exists (a local ``ray.init`` writes one) and a driver joining by address sends a token only
+    under ``RAY_AUTH_MODE=token``, read when Ray is imported: the nodes and every driver here share
+    a token of their own (docs/scaling.md), and the drivers are processes of their own."""
+    pytest.importorskip("ray")
+    folder = Path(tempfile.mkdtemp(prefix="ssfr-ray-", dir="/tmp"))
+    port = _free_port(hosts.here_ip)
+    address = f"{hosts.here_ip}:{port}"
+    env = {**ENV, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    for name in ("head", "node"):
+        (folder / f"{name}_cwd").mkdir()
+    ray_start = [str(BIN / "ray"), "start", "--block", "--disable-usage-stats"]
+    hosts.start([*ray_start, "--head", "--node-ip-address", hosts.here_ip, "--port", str(port), "--num-cpus", "1",
+                 "--temp-dir", str(folder / "head"), "--include-dashboard", "false"], there=False, env=env,
+                cwd=folder / "head_cwd", log=folder / "head.log")
+    _wait_for_port(hosts.here_ip, port, 60, "the Ray head")
+    hosts.start([*ray_start, "--address", address, "--node-ip-address", hosts.there_ip, "--num-cpus", "2",
+                 "--temp-dir", str(folder / "node")], there=True, env=env, cwd=folder / "node_cwd",
+                log=folder / "node.log")
+    cluster = Cluster(hosts, address, {**env, "RAY_ADDRESS": address})
+    alive = cluster.drive("""if True:
+        import time, ray
+        ray.init(configure_logging=False, log_to_driver=False)
+        deadline = time.monotonic() + 60
+        while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        print(sum(n["Alive"] for n in ray.nodes()))""")
+    assert alive == 2, (folder / "node.log").read_text()[-2000:]
+    yield cluster
+    hosts.close()  # the nodes end before their folders go
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+SHARDS = """if True:
+    import json, os, time
+    import ray
+    from pipeline.executor import cluster_slots, connected, run_sharded
+
+    def where(shard):
+        time.sleep(0.5)  # long enough that the three tasks run at once, one a CPU
+        return ray.util.get_node_ip_address(), shard, os.getcwd()
+
+    done = run_sharded(where, 6, "ray", os.environ["RAY_ADDRESS"])
+    left = ray.is_initialized()
+    with connected("ray"):  # joined once, counted from inside too
+        slots = cluster_slots("ray", "cpu")
+    print(json.dumps({"done": done, "left_connected": left, "slots": slots, "cwd": os.getcwd()}))"""
+
+
+def test_work_is_cut_per_cpu_of_the_cluster_and_runs_on_both_nodes(cluster):
+    """Three CPUs over two nodes give three shards, not this machine's core count, and the tasks run
+    on both hosts, the second in its own folder: nothing a task does may lean on the driver's."""
+    out = cluster.drive(SHARDS)
+    assert [shard for _, shard, _ in out["done"]] == [[0, 1], [2, 3], [4, 5]]
+    assert {ip for ip, _, _ in out["done"]} == {cluster.hosts.here_ip, cluster.hosts.there_ip}
+    assert any(cwd != out["cwd"] for _, _, cwd in out["done"])
+    assert out["slots"] == 3 and not out["left_connected"], "the block that joined leaves"
+
+
+def test_a_gpu_run_on_a_cluster_without_gpus_is_an_error_not_a_hang(cluster):
+    message = cluster.drive("""if True:
+        import json
+        from pipeline.executor import run_sharded
+        try:
+            run_sharded(print, 2, "ray", device="cuda")
+        except RuntimeError as exc:
+            print(json.dumps(str(exc)))""")
+    assert "has no GPU" in message
+
+
+def test_dataset_and_a_users_sequence_over_two_nodes_equal_serial_runs(cluster, tiny_dam, tmp_path):
+    """The dataset stage and ``render PATTERN`` (relative paths, from a folder the second node does
+    not start in) sharded over the two nodes write what serial runs write, byte for byte, into the
+    same cache entries; one connection serves the dataset command's work."""
+    from tests.test_cli import _drop
+
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    serial = tiny_dam.parent / "data"
+    body.update(data_dir=str(tmp_path / "ray_data"), scene_dir=str(tiny_dam.parent / "scenes"),
+                executor="ray", ray_address=cluster.address)
+    (tmp_path / "ray.yaml").write_text(yaml.safe_dump(body))
+    assert cli.main(["dataset", "--config", str(tiny_dam)]) == 0
+    sharded = _command(cluster, ["dataset", "--config", str(tmp_path / "ray.yaml")], ROOT)
+    assert f"ray: 3 tasks on {cluster.address} (2 nodes, 3 CPUs)" in sharded
+    _same_exrs(serial / "dataset", tmp_path / "ray_data" / "dataset", 12)
+
+    users = tmp_path / "users"
+    users.mkdir()
+    _drop(users, frames=range(1, 7))
+    args = ["render", "drop_{}.ply", "--radius", "0.01", "--size", "48x48", "--method", "nrf"]
+    _command(cluster, [*args, "--out", "serial"], users, executor=False)
+    assert "ray: 3 tasks" in _command(cluster, [*args, "--out", "sharded", "--executor", "ray"], users)
+    written = sorted(p.name for p in (users / "serial").glob("frame_*.exr"))
+    assert written == [f"frame_{i:04d}.exr" for i in range(1, 7)]
+    for name in written:
+        assert (users / "sharded" / name).read_bytes() == (users / "serial" / name).read_bytes(), name
+
+
+def _command(cluster: Cluster, argv: list[str], cwd: Path, executor: bool = True) -> str:
+    """``deep-ssfr ARGV`` run from ``cwd`` as the cluster's driver (or with no cluster); its log."""
+    env = {**os.environ, **(cluster.env if executor else ENV)}
+    done = subprocess.run([str(BIN / "deep-ssfr"), *argv], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stderr
+
+
+def _same_exrs(a_root: Path, b_root: Path, count: int) -> None:
+    (a,) = a_root.iterdir()
+    (b,) = b_root.iterdir()
+    assert a.name == b.name, "the executor is not part of the key: both runs fill the same entry"
+    files = sorted(p.relative_to(a) for p in a.rglob("*.exr"))
+    assert len(files) == count and files == sorted(p.relative_to(b) for p in b.rglob("*.exr"))
+    for f in files:
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+
+
+def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, tmp_path):
+    """``make train-ddp`` with the multi-node TORCHRUN_ARGS of docs/training_at_scale.md, one process
+    a host, gives the checkpoint that two processes on one host give, bit for bit (the ranks, not the
+    hosts, split the batches), and rank 0 alone writes it."""
+    import torch
+
+    from pipeline.model.inference import load_refiner
+    from tests.test_model import _tiny_train_config
+
+    here = _tiny_train_config(tmp_path, "here")
+    subprocess.run([sys.executable, "-m", "stages.dataset", "--config", here], cwd=ROOT, check=True,
+                   env={**os.environ, **ENV}, capture_output=True)
+    two = _tiny_train_config(tmp_path, "two")
+    shutil.copytree(tmp_path / "here" / "data", tmp_path / "two" / "data")  # the same dataset, built once
+
+    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.train", "--config"]
+    assert subprocess.run([*one_host, here], cwd=ROOT, env={**os.environ, **ENV},
+                          capture_output=True).returncode == 0
+    for code, log in _train_on_two_hosts(hosts, two, tmp_path):
+        assert code == 0, log[-3000:]
+    (a,) = (tmp_path / "here" / "data" / "train").glob("*/last.pt")
+    (b,) = (tmp_path / "two" / "data" / "train").glob("*/last.pt")
+    assert a.parent.name == b.parent.name
+    one, two_hosts_state = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
+    assert [h["processes"] for h in two_hosts_state["history"]] == [2, 2]
+    for k, v in one["generator"].items():
+        assert torch.equal(v, two_hosts_state["generator"][k]), k
+    assert load_refiner(b.parent / "best.pt").splat == "ellipsoid"
+    assert not list((tmp_path / "two" / "data").rglob("*.tmp-*"))
+
+
+def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path) -> list[tuple[int, str]]:
+    """``torchrun -m stages.train`` over the two hosts, one process each, from different folders;
+    each node's exit code and log. Each host's name resolves to another network here (as on a node
+    with several, or Debian's 127.0.1.1): each node names its address on the cluster's network, and
+    the endpoint's node, given by address rather than name, is told it keeps the store. No
+    GLOO_SOCKET_IFNAME: gloo binds the interface that routes to the master
+    (``distributed.reaching_interface``)."""
+    port = _free_port(hosts.here_ip)
+    node = [str(BIN / "torchrun"), "--nnodes", "2", "--nproc_per_node", "1", "--rdzv-backend", "c10d",
+            "--rdzv-endpoint", f"{hosts.here_ip}:{port}", "--rdzv-id", f"ssfr-{port}"]
+    train = ["-m", "stages.train", "--config", config]
+    logs = [tmp_path / "node0.log", tmp_path / "node1.log"]
+    procs = [hosts.start([*node, "--local-addr", hosts.here_ip, "--rdzv-conf", "is_host=1", *train], there=False,
+                         env=ENV, cwd=ROOT, log=logs[0]),
+             hosts.start([*node, "--local-addr", hosts.there_ip, *train], there=True, env=ENV, cwd=tmp_path,
+                         log=logs[1])]
+    return [(proc.wait(timeout=240), log.read_text()) for proc, log in zip(procs, logs, strict=True)]
+
+
+def test_the_interface_to_a_host_is_the_one_its_route_leaves_from(hosts):
+    from pipeline.model.distributed import reaching_interface
+
+    assert reaching_interface(hosts.there_ip) == hosts.here_if
+    assert reaching_interface("127.0.0.1") == "lo"
+    assert reaching_interface("name.invalid") is None
