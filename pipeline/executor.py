@@ -22,6 +22,8 @@ import os
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
+from tqdm import tqdm
+
 log = logging.getLogger("deep_ssfr")
 T = TypeVar("T")
 R = TypeVar("R")
@@ -109,7 +111,15 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
         log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), address or "a local cluster", nodes,
                  "s" * (nodes != 1), have.get("CPU", 0), gpus)
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(fn) if _is_cuda(device) else ray.remote(fn)
-        return ray.get([remote.remote(t) for t in tasks])
+        pending = [remote.remote(t) for t in tasks]
+        order = {ref: k for k, ref in enumerate(pending)}
+        results: list[Any] = [None] * len(tasks)
+        with tqdm(total=len(tasks), desc="ray tasks", unit="task", leave=False) as bar:
+            while pending:  # as they finish, so that the bar moves and a failed task stops the run early
+                done, pending = ray.wait(pending, num_returns=1)
+                results[order[done[0]]] = ray.get(done[0])
+                bar.update()
+        return results
 
 
 def run_sharded(fn: Callable[[list[int]], R], count: int, executor: str, address: str = "",

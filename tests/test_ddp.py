@@ -281,7 +281,8 @@ def test_a_process_group_that_cannot_form_says_what_to_set(monkeypatch):
 
     monkeypatch.setattr(distributed.dist, "init_process_group", refuse)
     monkeypatch.setattr(distributed, "_WORLD", None)
-    monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)
+    monkeypatch.setenv("GLOO_SOCKET_IFNAME", "")  # recorded as it was, so start()'s choice is undone after
+    monkeypatch.delenv("GLOO_SOCKET_IFNAME")
     for k, v in {"WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1"}.items():
         monkeypatch.setenv(k, v)
     with pytest.raises(RuntimeError, match=r"\(rank 1 of 2\)\. .*--local-addr.*GLOO_SOCKET_IFNAME"):

@@ -193,7 +193,7 @@ def _same_exrs(a_root: Path, b_root: Path, count: int) -> None:
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
 
 
-def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, tmp_path):
+def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, tmp_path, monkeypatch):
     """``make train-ddp`` with the multi-node TORCHRUN_ARGS of docs/training_at_scale.md, one process
     a host, gives the checkpoint that two processes on one host give, bit for bit (the ranks, not the
     hosts, split the batches), and rank 0 alone writes it."""
@@ -202,6 +202,7 @@ def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, t
     from pipeline.model.inference import load_refiner
     from tests.test_model import _tiny_train_config
 
+    monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)  # the nodes choose their own
     here = _tiny_train_config(tmp_path, "here")
     subprocess.run([sys.executable, "-m", "stages.dataset", "--config", here], cwd=ROOT, check=True,
                    env={**os.environ, **ENV}, capture_output=True)
