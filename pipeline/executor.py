@@ -149,6 +149,7 @@ def cluster_slots(executor: str, device: str = "cpu", address: str = "") -> int:
 
 
 def _worker_env() -> dict[str, Any]:
-    """The environment variables a worker needs to behave like this process (device, GL, logs)."""
-    keys = ("DEEP_SSFR_DEVICE", "PYOPENGL_PLATFORM", "DEEP_SSFR_LOG", "PYTHONPATH")
-    return {k: os.environ[k] for k in keys if k in os.environ}
+    """The environment variables a worker needs to behave like this process: every ``DEEP_SSFR_``
+    setting (device, logs, EXR threads, synchronised timers), GL's platform and the import path."""
+    return {k: v for k, v in os.environ.items()
+            if k.startswith("DEEP_SSFR_") or k in ("PYOPENGL_PLATFORM", "PYTHONPATH")}

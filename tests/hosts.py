@@ -71,6 +71,9 @@ def two_hosts() -> Iterator[Hosts]:
     pid = os.getpid()
     net = f"10.211.{pid % 250}"
     hosts = Hosts(f"ssfr-test-{pid}", f"{net}.1", f"{net}.2", f"ssfrh{pid}", f"ssfrt{pid}")
+    # a namespace of this name is a killed earlier run's (a process id used again): drop it
+    subprocess.run(["ip", "netns", "delete", hosts.name], capture_output=True)
+    subprocess.run(["ip", "link", "delete", hosts.here_if], capture_output=True)
     try:
         _ip("netns", "add", hosts.name)
     except OSError as exc:

@@ -50,6 +50,8 @@ def _wait_for_port(host: str, port: int, timeout: float, what: str) -> None:
 
 @dataclass
 class Cluster:
+    """A running Ray cluster of the two hosts, and how a driver joins it."""
+
     hosts: Hosts
     address: str
     env: dict[str, str]
@@ -114,8 +116,9 @@ SHARDS = """if True:
 
     def where(shard):
         time.sleep(0.5)  # long enough that the three tasks run at once, one a CPU
-        return ray.util.get_node_ip_address(), shard, os.getcwd()
+        return ray.util.get_node_ip_address(), shard, os.getcwd(), os.environ.get("DEEP_SSFR_EXR_THREADS")
 
+    os.environ["DEEP_SSFR_EXR_THREADS"] = "1"  # the driver's settings travel; the nodes have none
     done = run_sharded(where, 6, "ray", os.environ["RAY_ADDRESS"])
     left = ray.is_initialized()
     with connected("ray"):  # joined once, counted from inside too
@@ -125,11 +128,13 @@ SHARDS = """if True:
 
 def test_work_is_cut_per_cpu_of_the_cluster_and_runs_on_both_nodes(cluster):
     """Three CPUs over two nodes give three shards, not this machine's core count, and the tasks run
-    on both hosts, the second in its own folder: nothing a task does may lean on the driver's."""
+    on both hosts, the second in its own folder (nothing a task does may lean on the driver's), with
+    the driver's DEEP_SSFR_ settings."""
     out = cluster.drive(SHARDS)
-    assert [shard for _, shard, _ in out["done"]] == [[0, 1], [2, 3], [4, 5]]
-    assert {ip for ip, _, _ in out["done"]} == {cluster.hosts.here_ip, cluster.hosts.there_ip}
-    assert any(cwd != out["cwd"] for _, _, cwd in out["done"])
+    assert [shard for _, shard, _, _ in out["done"]] == [[0, 1], [2, 3], [4, 5]]
+    assert {ip for ip, _, _, _ in out["done"]} == {cluster.hosts.here_ip, cluster.hosts.there_ip}
+    assert any(cwd != out["cwd"] for _, _, cwd, _ in out["done"])
+    assert [threads for *_, threads in out["done"]] == ["1"] * 3
     assert out["slots"] == 3 and not out["left_connected"], "the block that joined leaves"
 
 
