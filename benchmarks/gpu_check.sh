@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 13's GPU measurements on the GPU machine (the `device` tool), about 9 minutes in all:
+# Issue 13's GPU measurements on the GPU machine (the `device` tool), about 10.5 minutes in all:
 # the cuda-marked tests, the simulator against its own stage at 50k particles, the dataset and
 # render benchmarks on CUDA, the dataset stage's views/s at 512, the render stage's frames/s at
 # 1024, and Taichi side by side on the same GPU when its wheel came along.
@@ -11,22 +11,24 @@
 # the logs and traces are packed into OUT/gpu_check.tgz, and the step lines go to OUT/summary.txt
 # (`tar xzf gpu_check.tgz` gives <step>.txt and traces/; `python -m pipeline.profiling
 # traces/render_stage.trace.json.gz` reads a trace again).
-# Stage what the machine lacks first (`bash benchmarks/gpu_stage.sh`: Warp, the wheels its image
-# lacks, Taichi apart) and make the calls its header lists; from the repo root there:
+# Stage what the machine lacks first (`bash benchmarks/gpu_stage.sh`: Warp, Taichi and the wheels
+# its image lacks, packed into pieces that travel one a call) and make the calls it prints; from
+# the repo root there:
 #
-#     bash benchmarks/gpu_check.sh                    # every step; OUT defaults to $OUT (the device
-#                                                     # tool's) or /tmp/gpu_check
+#     bash benchmarks/gpu_check.sh                    # every step (about 10.5 minutes: more than a
+#                                                     # call may take); OUT defaults to $OUT (the
+#                                                     # device tool's) or /tmp/gpu_check
 #     bash benchmarks/gpu_check.sh taichi render ...  # only the steps named, in the script's order: gpu
 #                                                     # cuda_tests sim sim_stage render_stage
 #                                                     # dataset_stage taichi render dataset
 #
 # GPU_CHECK_DEVICE=cpu runs the same steps on the CPU (a dry run of the script; minutes longer).
 #
-# Taichi's step runs in a third call with the two breakdowns (its wheel and the second half of
-# Warp's pass the 64 MiB a call may carry; the second call then holds the issue's figures within
-# about 6.5 minutes); the step installs the carried wheels (.gpu/t) first and is skipped without
-# them. The nccl path of `make train-ddp` needs one GPU per process, so a one-GPU machine cannot run
-# it (a world of one process makes no process group).
+# On the lent machine the issue's figures are one call, at most 8.5 minutes (gpu cuda_tests sim
+# sim_stage render_stage dataset_stage taichi), and the two per-part breakdowns a second (render
+# dataset, at most 2.2 minutes), so a lease cut short by the machine's start loses the breakdowns
+# first. The nccl path of `make train-ddp` needs one GPU per process, so a one-GPU machine cannot
+# run it (a world of one process makes no process group).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_check}
 WORK=${GPU_CHECK_WORK:-/tmp/gpu_check_work}  # the logs and traces, packed into OUT after each step
@@ -60,15 +62,10 @@ step sim_stage 85 "$PY" benchmarks/bench_sim_stage.py --particle-radius 0.00888 
 step render_stage 60 "$PY" benchmarks/bench_render_stage.py --device "$DEVICE" --size 1024 --frames 30 \
     --trace "$TRACES"
 step dataset_stage 70 "$PY" benchmarks/bench_dataset_stage.py --size 512 --frames 16 --trace "$TRACES"
-if [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
-    if ls .gpu/t/*.whl >/dev/null 2>&1 && ! "$PY" -c "import taichi" 2>/dev/null; then  # the third call's wheels
-        "$PY" -m pip install -q --no-index --no-deps --no-compile --target "${GPU_SITE:-/tmp/gpu/site}" .gpu/t/*.whl
-    fi
-    if "$PY" -c "import taichi" 2>/dev/null; then
-        step taichi 120 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
-    else
-        echo "taichi             skipped: no taichi here (bash benchmarks/gpu_stage.sh, then a third call)"
-    fi
+if "$PY" -c "import taichi" 2>/dev/null; then
+    step taichi 120 "$PY" benchmarks/bench_sim.py --peers --device "$DEVICE" --particles 50000 --steps 400 --repeat 2
+elif [ "$ONLY" = "  " ] || [[ "$ONLY" == *" taichi "* ]]; then
+    echo "taichi             skipped: no taichi here (benchmarks/gpu_stage.sh packs it with Warp)"
 fi
 # bench_render's per-stage columns with every step waiting for the GPU (DEEP_SSFR_SYNC_TIMINGS), so
 # each holds its own work; bench_render_stage's frames/s keep the overlap
