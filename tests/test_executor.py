@@ -47,17 +47,40 @@ def test_ray_dataset_render_and_evaluate_equal_a_serial_run(tiny_dam, tmp_path):
         for f in files:
             assert (a / f).read_bytes() == (b / f).read_bytes(), f
 
-    def metrics(root):
-        (entry,) = (root / "evaluate").iterdir()
-        data = json.loads((entry / "metrics.json").read_text())
-        sized = [(d["overall"], d["sequences"]) for d in data["sizes"].values()]
-        for overall, sequences in [(data["overall"], data["sequences"]), *sized]:
-            for table in [overall, *(s["methods"] for s in sequences)]:
-                for row in table.values():
-                    row.pop("ms_per_frame", None)  # timings differ, everything else must not
-        return data
+    assert evaluation_metrics(serial) == evaluation_metrics(tmp_path / "ray_data")
 
-    assert metrics(serial) == metrics(tmp_path / "ray_data")
+
+def evaluation_metrics(root):
+    """The evaluate entry's metrics under ``root`` (a data_dir) without their timings."""
+    (entry,) = (root / "evaluate").iterdir()
+    data = json.loads((entry / "metrics.json").read_text())
+    sized = [(d["overall"], d["sequences"]) for d in data["sizes"].values()]
+    for overall, sequences in [(data["overall"], data["sequences"]), *sized]:
+        for table in [overall, *(s["methods"] for s in sequences)]:
+            for row in table.values():
+                row.pop("ms_per_frame", None)  # timings differ, everything else must not
+    return data
+
+
+@pytest.mark.slow
+def test_a_command_joins_one_cluster_for_all_its_work():
+    """Inside ``cluster_scope`` (every command's) the calls share the cluster the first one started;
+    outside one, each call leaves nothing running."""
+    ray = pytest.importorskip("ray")
+    from pipeline.executor import cluster_scope
+
+    def _job(_):  # defined here: a test module's functions travel by value only when nested
+        import ray
+
+        return ray.get_runtime_context().get_node_id()  # a new cluster, a new node
+
+    with cluster_scope():
+        first = run_tasks(_job, [0, 1], "ray")
+        assert ray.is_initialized()
+        assert run_tasks(_job, [0], "ray")[0] == first[0] == first[1]
+    assert not ray.is_initialized()
+    run_tasks(_job, [0], "ray")
+    assert not ray.is_initialized()
 
 
 @pytest.mark.slow

@@ -150,13 +150,15 @@ def test_a_gpu_run_on_a_cluster_without_gpus_is_an_error_not_a_hang(cluster):
 
 
 def test_dataset_and_a_users_sequence_over_two_nodes_equal_serial_runs(cluster, tiny_dam, tmp_path):
-    """The dataset stage and ``render PATTERN`` (relative paths, from a folder the second node does
-    not start in) sharded over the two nodes write what serial runs write, byte for byte, into the
-    same cache entries; one connection serves the dataset command's work."""
+    """The dataset and evaluate stages and ``render PATTERN`` (relative paths, from a folder the
+    second node does not start in) sharded over the two nodes write what serial runs write, byte for
+    byte, into the same cache entries (the evaluation's metrics but for their timings)."""
     from tests.test_cli import _drop
+    from tests.test_executor import evaluation_metrics
 
     body = yaml.safe_load(tiny_dam.read_text())
     body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
+    body["evaluate"] = {"methods": ["bilateral", "nrf"], "frames_per_sequence": 2}
     tiny_dam.write_text(yaml.safe_dump(body))
     serial = tiny_dam.parent / "data"
     body.update(data_dir=str(tmp_path / "ray_data"), scene_dir=str(tiny_dam.parent / "scenes"),
@@ -166,6 +168,9 @@ def test_dataset_and_a_users_sequence_over_two_nodes_equal_serial_runs(cluster, 
     sharded = _command(cluster, ["dataset", "--config", str(tmp_path / "ray.yaml")], ROOT)
     assert f"ray: 3 tasks on {cluster.address} (2 nodes, 3 CPUs)" in sharded
     _same_exrs(serial / "dataset", tmp_path / "ray_data" / "dataset", 12)
+    assert cli.main(["evaluate", "--config", str(tiny_dam)]) == 0
+    assert "ray: 2 tasks" in _command(cluster, ["evaluate", "--config", str(tmp_path / "ray.yaml")], ROOT)
+    assert evaluation_metrics(serial) == evaluation_metrics(tmp_path / "ray_data")
 
     users = tmp_path / "users"
     users.mkdir()
