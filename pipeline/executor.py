@@ -104,12 +104,13 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
 
         have = ray.cluster_resources()
         nodes = sum(1 for n in ray.nodes() if n.get("Alive"))
+        where = address or os.environ.get("RAY_ADDRESS") or "this machine"
         gpus = f", {have.get('GPU', 0):g} GPUs, {1 / TASKS_PER_GPU:g} a task" if _is_cuda(device) else ""
         if _is_cuda(device) and have.get("GPU", 0) < 1 / TASKS_PER_GPU:  # its tasks would wait for ever
-            raise RuntimeError(f"the run's device is {device} but the Ray cluster at {address or 'this machine'} "
-                               "has no GPU: start its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
-        log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), address or "a local cluster", nodes,
-                 "s" * (nodes != 1), have.get("CPU", 0), gpus)
+            raise RuntimeError(f"the run's device is {device} but the Ray cluster at {where} has no GPU: start "
+                               "its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
+        log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, nodes, "s" * (nodes != 1),
+                 have.get("CPU", 0), gpus)
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(fn) if _is_cuda(device) else ray.remote(fn)
         pending = [remote.remote(t) for t in tasks]
         order = {ref: k for k, ref in enumerate(pending)}

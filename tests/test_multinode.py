@@ -177,7 +177,8 @@ def test_dataset_and_a_users_sequence_over_two_nodes_equal_serial_runs(cluster, 
     _drop(users, frames=range(1, 7))
     args = ["render", "drop_{}.ply", "--radius", "0.01", "--size", "48x48", "--method", "nrf"]
     _command(cluster, [*args, "--out", "serial"], users, executor=False)
-    assert "ray: 3 tasks" in _command(cluster, [*args, "--out", "sharded", "--executor", "ray"], users)
+    sharded = _command(cluster, [*args, "--out", "sharded", "--executor", "ray"], users)  # RAY_ADDRESS
+    assert f"ray: 3 tasks on {cluster.address} (2 nodes, 3 CPUs)" in sharded
     written = sorted(p.name for p in (users / "serial").glob("frame_*.exr"))
     assert written == [f"frame_{i:04d}.exr" for i in range(1, 7)]
     for name in written:
