@@ -263,21 +263,22 @@ def test_the_interface_to_a_host_is_the_one_its_route_leaves_from(hosts):
     assert reaching_interface("name.invalid") is None
 
 
-def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster, tmp_path):
+def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster, tiny_dam, tmp_path):
     """The dataset command SIGKILLed while its tasks write on both nodes: the entry stays
     unfinished, the tasks of the dead driver's job end, and a re-run resumes to what a serial run
     writes, with no temporary file left."""
     import signal
 
-    from tests.conftest import CAMERAS, write_config
-
-    scene = {"name": "tiny_dam", "domain_lo": [0, 0, 0], "domain_hi": [0.6, 0.5, 0.3],
-             "fluid": [{"shape": "box", "lo": [0, 0, 0], "hi": [0.2, 0.3, 0.3]}], "cameras": CAMERAS}
-    body = {"scenes": ["tiny_dam"], "seed": 3, "simulate": {"particle_radius": 0.0125, "frames": 30},
-            "dataset": {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}}
-    serial = write_config(tmp_path / "serial", body, {"tiny_dam": scene})
-    sharded = write_config(tmp_path / "sharded", {**body, "executor": "ray", "ray_address": cluster.address},
-                           {"tiny_dam": scene})
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["simulate"]["frames"] = 30
+    body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
+    serial = tiny_dam
+    serial.write_text(yaml.safe_dump(body))
+    sharded = tmp_path / "sharded" / "config.yaml"
+    sharded.parent.mkdir()
+    body.update(data_dir=str(sharded.parent / "data"), scene_dir=str(tiny_dam.parent / "scenes"), executor="ray",
+                ray_address=cluster.address)
+    sharded.write_text(yaml.safe_dump(body))
     assert cli.main(["dataset", "--config", str(serial)]) == 0
     assert cli.main(["simulate", "--config", str(sharded)]) == 0
     proc = subprocess.Popen([str(BIN / "deep-ssfr"), "dataset", "--config", str(sharded)], cwd=ROOT,
