@@ -275,8 +275,8 @@ def test_a_process_group_that_cannot_form_says_what_to_set(monkeypatch):
 
     seen = {}
 
-    def refuse(backend, **_):
-        seen["ifname"] = os.environ.get("GLOO_SOCKET_IFNAME")
+    def refuse(backend, timeout, **_):
+        seen["ifname"], seen["timeout"] = os.environ.get("GLOO_SOCKET_IFNAME"), timeout
         raise RuntimeError("Gloo connectFullMesh failed with timed out connecting")
 
     monkeypatch.setattr(distributed.dist, "init_process_group", refuse)
@@ -285,6 +285,20 @@ def test_a_process_group_that_cannot_form_says_what_to_set(monkeypatch):
     monkeypatch.delenv("GLOO_SOCKET_IFNAME")
     for k, v in {"WORLD_SIZE": "2", "RANK": "1", "LOCAL_RANK": "0", "MASTER_ADDR": "127.0.0.1"}.items():
         monkeypatch.setenv(k, v)
-    with pytest.raises(RuntimeError, match=r"\(rank 1 of 2\)\. .*--local-addr.*GLOO_SOCKET_IFNAME"):
+    with pytest.raises(RuntimeError, match=r"\(rank 1 of 2, waited up to 300 s: DEEP_SSFR_DIST_TIMEOUT\)\. "
+                                           r".*--local-addr.*GLOO_SOCKET_IFNAME"):
         distributed.start("cpu")
-    assert seen["ifname"] == "lo"
+    assert seen["ifname"] == "lo" and seen["timeout"].total_seconds() == distributed.STEP_TIMEOUT_S == 300
+
+
+def test_the_training_groups_timeout_is_read_from_the_environment(monkeypatch):
+    """``DEEP_SSFR_DIST_TIMEOUT`` bounds how long a node waits for a peer; a value that is not a positive
+    number of seconds is an error naming the variable, not torch's default."""
+    from pipeline.model.distributed import step_timeout
+
+    monkeypatch.setenv("DEEP_SSFR_DIST_TIMEOUT", "12.5")
+    assert step_timeout().total_seconds() == 12.5
+    for bad in ("0", "-3", "soon", "inf", "nan"):
+        monkeypatch.setenv("DEEP_SSFR_DIST_TIMEOUT", bad)
+        with pytest.raises(ValueError, match=f"must be a positive number of seconds, got '{bad}'"):
+            step_timeout()

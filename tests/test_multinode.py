@@ -236,7 +236,31 @@ def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, t
     assert not list((tmp_path / "two" / "data").rglob("*.tmp-*"))
 
 
-def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path) -> list[tuple[int, str]]:
+def test_a_node_whose_peer_never_joins_ends_within_the_timeout_not_torchs_30_minutes(hosts, tmp_path):
+    """The second node cannot read the config (the shared storage not mounted there: its path is
+    missing on it) and ends before it joins; the first, whose rendezvous had both, waits for it in
+    forming the group and ends within ``DEEP_SSFR_DIST_TIMEOUT`` (torch's own is 30 minutes) with
+    the stage's one line, which names its rank, the wait and what to set."""
+    from tests.test_model import _tiny_train_config
+
+    config = _tiny_train_config(tmp_path, "cut")
+    subprocess.run([sys.executable, "-m", "stages.dataset", "--config", config], cwd=ROOT, check=True,
+                   env={**os.environ, **ENV}, capture_output=True)
+    began = time.monotonic()
+    wait = {"DEEP_SSFR_DIST_TIMEOUT": "15"}
+    (here, here_log), (there, there_log) = _train_on_two_hosts(hosts, config, tmp_path, wait, wait,
+                                                               there_config="missing/config.yaml")
+    took = time.monotonic() - began
+    assert there != 0 and "config.yaml" in there_log, there_log[-3000:]
+    assert here != 0 and "train: error:" in here_log, here_log[-3000:]
+    assert "of 2, waited up to 15 s: DEEP_SSFR_DIST_TIMEOUT). " in here_log and "--local-addr" in here_log
+    assert took < 90, f"{took:.0f} s"
+    assert not list((tmp_path / "cut" / "data" / "train").glob("*/manifest.json"))
+
+
+def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dict[str, str] | None = None,
+                        env_there: dict[str, str] | None = None,
+                        there_config: str | None = None) -> list[tuple[int, str]]:
     """``torchrun -m stages.train`` over the two hosts, one process each, from different folders;
     each node's exit code and log. Each host's name resolves to another network here (as on a node
     with several, or Debian's 127.0.1.1): each node names its address on the cluster's network, and
@@ -247,11 +271,12 @@ def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path) -> list[tuple
     node = [str(BIN / "torchrun"), "--nnodes", "2", "--nproc_per_node", "1", "--rdzv-backend", "c10d",
             "--rdzv-endpoint", f"{hosts.here_ip}:{port}", "--rdzv-id", f"ssfr-{port}"]
     train = ["-m", "stages.train", "--config", config]
+    there_train = ["-m", "stages.train", "--config", there_config or config]
     logs = [tmp_path / "node0.log", tmp_path / "node1.log"]
     procs = [hosts.start([*node, "--local-addr", hosts.here_ip, "--rdzv-conf", "is_host=1", *train], there=False,
-                         env=ENV, cwd=ROOT, log=logs[0]),
-             hosts.start([*node, "--local-addr", hosts.there_ip, *train], there=True, env=ENV, cwd=tmp_path,
-                         log=logs[1])]
+                         env={**ENV, **(env_here or {})}, cwd=ROOT, log=logs[0]),
+             hosts.start([*node, "--local-addr", hosts.there_ip, *there_train], there=True,
+                         env={**ENV, **(env_there or {})}, cwd=tmp_path, log=logs[1])]
     return [(proc.wait(timeout=240), log.read_text()) for proc, log in zip(procs, logs, strict=True)]
 
 

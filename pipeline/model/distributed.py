@@ -26,6 +26,11 @@ SIOCGIFADDR = 0x8915
 """Linux's ioctl for an interface's (first) IPv4 address."""
 WAIT_TIMEOUT = timedelta(days=7)
 """How long a rank waits for rank 0 at a barrier (rank 0 may queue behind another run of the config)."""
+STEP_TIMEOUT_S = 300
+"""How long (seconds) the training group waits for a peer, in forming and in a step's all-reduce, before
+it fails, unless ``DEEP_SSFR_DIST_TIMEOUT`` says otherwise: a peer that died or cannot be reached ends
+every node's run within this, rather than torch's 30 minutes. The ranks run every step together, and
+rank 0's long work (validation, checkpoints, a cache lock) is waited for in the other group."""
 
 
 @dataclass(frozen=True)
@@ -79,6 +84,18 @@ _WORLD: World | None = None
 _WAIT: Any = None
 
 
+def step_timeout() -> timedelta:
+    """The training group's timeout: ``DEEP_SSFR_DIST_TIMEOUT`` seconds, else :data:`STEP_TIMEOUT_S`."""
+    value = os.environ.get("DEEP_SSFR_DIST_TIMEOUT", "").strip()
+    try:
+        seconds = float(value) if value else STEP_TIMEOUT_S
+    except ValueError:
+        seconds = -1.0
+    if not 0 < seconds < float("inf"):
+        raise ValueError(f"DEEP_SSFR_DIST_TIMEOUT must be a positive number of seconds, got {value!r}")
+    return timedelta(seconds=seconds)
+
+
 def _wait_group() -> Any:
     """The gloo group with the long timeout (created by :func:`start`)."""
     if _WAIT is None:
@@ -99,6 +116,7 @@ def start(device: str) -> World:
         _WORLD = World()
         return _WORLD
     rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    timeout = step_timeout()
     cuda = torch.device(device).type == "cuda"
     if cuda:
         torch.cuda.set_device(local_rank)
@@ -109,11 +127,12 @@ def start(device: str) -> World:
             os.environ["GLOO_SOCKET_IFNAME"] = name
     try:
         if not dist.is_initialized():
-            dist.init_process_group("nccl" if cuda else "gloo")
+            dist.init_process_group("nccl" if cuda else "gloo", timeout=timeout)
             atexit.register(stop)
         _WAIT = dist.new_group(backend="gloo", timeout=WAIT_TIMEOUT)
     except RuntimeError as exc:  # torch's DistError is one
-        raise RuntimeError(f"{exc} (rank {rank} of {size}). {NETWORK_HINT}") from exc
+        raise RuntimeError(f"{exc} (rank {rank} of {size}, waited up to {timeout.total_seconds():g} s: "
+                           f"DEEP_SSFR_DIST_TIMEOUT). {NETWORK_HINT}") from exc
     _WORLD = World(rank, dist.get_world_size(), local_rank)
     return _WORLD
 
