@@ -110,7 +110,9 @@ def make_key(payload: dict[str, Any]) -> str:
 
 
 JOURNAL = "journal.jsonl"
-_OPEN_ENTRIES: dict[Path, threading.Lock] = {}  # entries between begin() and finish(), by folder
+"""The journal of the process that opened an entry; each worker process of a Ray run keeps its own
+beside it (``journal-<host>-<pid>-<random>.jsonl``), since appends from several NFS clients can interleave."""
+_OPEN_ENTRIES: dict[Path, tuple[threading.Lock, str]] = {}  # open entries' folders: lock, journal name
 _HELD: set[Any] = set()  # the entry locks (filelock.FileLock) this process holds
 
 
@@ -118,13 +120,51 @@ def _journal(target: Path) -> None:
     """Append a finished file's size and hash to the journal of the open entry that holds it, so a
     resumed run can check the files of an unfinished entry as the manifest checks a finished one."""
     target = Path(target).resolve()
-    for folder, lock in list(_OPEN_ENTRIES.items()):
+    for folder, (lock, journal) in list(_OPEN_ENTRIES.items()):
         if folder in target.parents:
             line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
                                "blake2b": file_hash(target)})
-            with lock, open(folder / JOURNAL, "a") as fh:
+            with lock, open(folder / journal, "a") as fh:
                 fh.write(line + "\n")
             return
+
+
+def _journals(folder: Path) -> list[Path]:
+    """An entry's journals, the opener's first and then the workers' by age (a later record of a
+    file wins)."""
+    workers = sorted(folder.glob("journal-*.jsonl"), key=lambda p: (p.stat().st_mtime_ns, p.name))
+    return [p for p in [folder / JOURNAL] if p.exists()] + workers
+
+
+@functools.cache
+def _process_tag() -> str:
+    """This process's name among a cluster's: host, pid and a random part (containers on several
+    nodes may share a host name and pid)."""
+    import secrets
+    import socket
+
+    return f"{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(4)}"
+
+
+def open_entries() -> list[Path]:
+    """The folders of the entries this process has begun and not finished (for :func:`journal_into`)."""
+    return list(_OPEN_ENTRIES)
+
+
+@contextmanager
+def journal_into(folders: list[Path]) -> Iterator[None]:
+    """Journal the files this process finishes inside ``folders``, entries another process opened
+    (a Ray task writing into its driver's entry), in a journal of this process's own there, so a
+    resumed run checks them as it checks the driver's."""
+    mine = [Path(f) for f in folders if Path(f) not in _OPEN_ENTRIES]
+    name = f"journal-{_process_tag()}.jsonl"
+    for folder in mine:
+        _OPEN_ENTRIES[folder] = (threading.Lock(), name)
+    try:
+        yield
+    finally:
+        for folder in mine:
+            _OPEN_ENTRIES.pop(folder, None)
 
 
 @contextmanager
@@ -271,17 +311,25 @@ class CacheEntry:
         self.dir.mkdir(parents=True, exist_ok=True)
         for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
             stale.unlink()
-        journal = self.dir / JOURNAL
-        if journal.exists():
+        if journals := _journals(self.dir):
             records: dict[str, dict] = {}
-            for line in journal.read_text().splitlines():
-                try:
-                    rec = json.loads(line)
-                except json.JSONDecodeError:
-                    continue  # a line cut short by a kill: its file is checked by the stage
-                records[rec["file"]] = rec
+            for journal in journals:
+                for line in journal.read_text().splitlines():
+                    try:
+                        rec = json.loads(line)
+                    except json.JSONDecodeError:
+                        continue  # a line cut short by a kill: its file is checked by the stage
+                    records[rec["file"]] = rec
             self._drop_damaged(records)
-        _OPEN_ENTRIES[self.dir.resolve()] = threading.Lock()
+            # one journal again, of the files that passed, so that the next resume reads them in order
+            kept = "".join(json.dumps(r) + "\n" for name, r in records.items() if (self.dir / name).exists())
+            tmp = self.dir / f".{JOURNAL}{_TMP_MARK}{os.getpid()}"
+            tmp.write_text(kept)
+            os.replace(tmp, self.dir / JOURNAL)
+            for worker in journals:
+                if worker.name != JOURNAL:
+                    worker.unlink()
+        _OPEN_ENTRIES[self.dir.resolve()] = (threading.Lock(), JOURNAL)
         return True
 
     def _lock(self) -> None:
@@ -338,7 +386,8 @@ class CacheEntry:
         }
         _OPEN_ENTRIES.pop(self.dir.resolve(), None)
         write_json_atomic(self.dir / MANIFEST, payload)
-        (self.dir / JOURNAL).unlink(missing_ok=True)
+        for journal in _journals(self.dir):
+            journal.unlink()
         if self.building is not None:  # swap the rebuilt folder in; readers saw the old one until now
             old = self.final_dir.with_name(f"{self.final_dir.name}.old-{os.getpid()}")
             if self.final_dir.exists():

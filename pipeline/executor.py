@@ -24,6 +24,8 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
+from pipeline import cache
+
 log = logging.getLogger("deep_ssfr")
 T = TypeVar("T")
 R = TypeVar("R")
@@ -111,7 +113,12 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
                                "its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
         log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, nodes, "s" * (nodes != 1),
                  have.get("CPU", 0), gpus)
-        remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(fn) if _is_cuda(device) else ray.remote(fn)
+        folders = cache.open_entries()
+
+        def journaled(task: T) -> R:  # a function, not a partial: ray.remote takes only functions
+            return _journaled(fn, folders, task)
+
+        remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(journaled) if _is_cuda(device) else ray.remote(journaled)
         pending = [remote.remote(t) for t in tasks]
         order = {ref: k for k, ref in enumerate(pending)}
         results: list[Any] = [None] * len(tasks)
@@ -147,6 +154,13 @@ def cluster_slots(executor: str, device: str = "cpu", address: str = "") -> int:
 
         return max(1, torch.cuda.device_count() * per)
     return os.cpu_count() or 1
+
+
+def _journaled(fn: Callable[[T], R], folders: list[Any], task: T) -> R:
+    """``fn(task)`` in a Ray worker, its finished files inside the driver's open cache entries
+    journaled there (:func:`pipeline.cache.journal_into`), so a resume after a kill checks them."""
+    with cache.journal_into(folders):
+        return fn(task)
 
 
 def _worker_env() -> dict[str, Any]:

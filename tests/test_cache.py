@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -135,3 +137,48 @@ def test_corrupt_cache_file_is_named(tiny_dam, capsys):
     assert _run(tiny_dam) == 1
     err = capsys.readouterr().err
     assert "frame_0003.npz" in err and "corrupt" in err
+
+
+WORKER = """if True:
+    import sys
+    from pathlib import Path
+    from pipeline import cache
+
+    folder = Path(sys.argv[1])
+    with cache.journal_into([folder]):
+        for name in sys.argv[2:]:
+            with cache.atomic_path(folder / name) as tmp:
+                tmp.write_bytes(name.encode() * 50)
+    with cache.atomic_path(folder / "after.bin") as tmp:  # out of the block: not this process's to record
+        tmp.write_bytes(b"x")
+"""
+
+
+def test_files_a_worker_process_writes_into_an_open_entry_are_checked_on_resume(tmp_path, caplog):
+    """Worker processes (Ray tasks) writing into the entry a driver opened keep journals of their own
+    beside the driver's; a resume reads them all, redoes a damaged file of either, folds the rest into
+    one journal, and the manifest supersedes them."""
+    entry = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert entry.begin()
+    with cache.atomic_path(entry.path("driver.bin")) as tmp:
+        tmp.write_bytes(b"d" * 100)
+    for names in (["a.bin", "b.bin"], ["c.bin"]):  # two workers, as two Ray tasks
+        subprocess.run([sys.executable, "-c", WORKER, str(entry.dir.resolve()), *names], cwd=ROOT, check=True)
+    workers = [p.name for p in entry.dir.glob("journal-*.jsonl")]
+    assert len(workers) == 2 and all(re.fullmatch(r"journal-.+-\d+-[0-9a-f]{8}\.jsonl", n) for n in workers), workers
+    assert "driver.bin" in entry.path("journal.jsonl").read_text()
+    entry.release()  # the driver is killed: its lock goes, the entry stays unfinished
+
+    entry.path("b.bin").write_bytes(b"short")  # a worker's file damaged after the kill
+    entry.path("driver.bin").unlink()  # and one of the driver's lost
+    again = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    caplog.set_level("WARNING")
+    assert again.begin()
+    assert "b.bin is damaged (5 bytes, 250 recorded)" in caplog.text
+    assert "driver.bin is damaged (missing)" in caplog.text
+    assert not again.path("b.bin").exists() and again.path("a.bin").exists() and again.path("c.bin").exists()
+    assert [p.name for p in again.dir.glob("journal*.jsonl")] == ["journal.jsonl"]
+    kept = {json.loads(line)["file"] for line in again.path("journal.jsonl").read_text().splitlines()}
+    assert kept == {"a.bin", "c.bin"}, "after.bin was written outside the worker's block"
+    again.finish(["a.bin", "c.bin"])
+    assert not list(again.dir.glob("journal*.jsonl"))

@@ -290,8 +290,9 @@ def test_the_interface_to_a_host_is_the_one_its_route_leaves_from(hosts):
 
 def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster, tiny_dam, tmp_path):
     """The dataset command SIGKILLed while its tasks write on both nodes: the entry stays
-    unfinished, the tasks of the dead driver's job end, and a re-run resumes to what a serial run
-    writes, with no temporary file left."""
+    unfinished, the tasks of the dead driver's job end, and each task's journal records what it
+    finished, so a re-run redoes a file damaged since and resumes to what a serial run writes,
+    with no temporary file or journal left."""
     import signal
 
     body = yaml.safe_load(tiny_dam.read_text())
@@ -318,6 +319,13 @@ def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster
     assert not (entry / "manifest.json").exists(), "the kill must land while the tasks write"
     written = len(list(entry.glob("*/frame_*.exr")))
     assert 6 <= written < 60, written
-    assert "ray: 3 tasks" in _command(cluster, ["dataset", "--config", str(sharded)], ROOT)
+    records = [json.loads(line) for j in entry.glob("journal-*.jsonl") for line in j.read_text().splitlines()
+               if line.endswith("}")]  # a line the kill cut short is skipped, as the resume does
+    assert records, "the tasks journal their views in journals of their own (the driver wrote none)"
+    assert {r["file"] for r in records} <= {str(p.relative_to(entry)) for p in entry.glob("*/frame_*.exr")}
+    damaged = entry / records[0]["file"]
+    damaged.write_bytes(damaged.read_bytes()[:200])  # a task's finished view, damaged after the kill
+    log = _command(cluster, ["dataset", "--config", str(sharded)], ROOT)
+    assert "ray: 3 tasks" in log and f"{records[0]['file']} is damaged (200 bytes" in log, log[-2000:]
     _same_exrs(serial.parent / "data" / "dataset", views, 60)
-    assert not list(views.rglob("*.tmp-*"))
+    assert not list(views.rglob("*.tmp-*")) and not list(views.rglob("journal*.jsonl"))
