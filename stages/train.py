@@ -15,7 +15,7 @@ from pathlib import Path
 from pipeline import cache
 from pipeline.config import to_dict
 from pipeline.model import distributed
-from pipeline.model.train import TimeLimitReached, fit, init_path
+from pipeline.model.train import TimeLimitReached, TrainingError, fit, init_path
 from stages import dataset
 from stages.common import Run, StageError, StageOptions, make_run, train_scenes
 
@@ -82,6 +82,12 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
         return entry
     try:
         best = fit(Path(folder), cfg, run.config.seed, train_paths, val_paths, run.device)
+    except TrainingError:
+        raise
+    except RuntimeError as exc:  # a collective's failure is a plain RuntimeError: say what to do on a cluster
+        if world.size == 1:
+            raise
+        raise RuntimeError(f"{exc} (rank {world.rank} of {world.size}). {distributed.PEER_HINT}") from exc
     except TimeLimitReached as stop:
         if world.is_main:
             entry.release()

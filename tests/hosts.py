@@ -43,6 +43,23 @@ class Hosts:
         self.procs.append(proc)
         return proc
 
+    def kill_tree(self, proc: subprocess.Popen) -> None:
+        """SIGKILL ``proc`` and every process descended from it at once, as when their node dies
+        (torchrun starts its workers in sessions of their own: killing its group leaves them running)."""
+        children: dict[int, list[int]] = {}
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+                children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+        tree, todo = [], [proc.pid]
+        while todo:
+            pid = todo.pop()
+            tree.append(pid)
+            todo.extend(children.get(pid, []))
+        for pid in tree:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
     def close(self) -> None:
         """End every process started here (their whole groups), then the namespace and its veth."""
         for sig, grace in ((signal.SIGTERM, 3.0), (signal.SIGKILL, 10.0)):  # a Ray node drains for 30 s

@@ -258,26 +258,86 @@ def test_a_node_whose_peer_never_joins_ends_within_the_timeout_not_torchs_30_min
     assert not list((tmp_path / "cut" / "data" / "train").glob("*/manifest.json"))
 
 
+def test_a_node_killed_mid_training_ends_the_other_and_both_resume_to_a_straight_runs_weights(hosts, tmp_path):
+    """The second node's torchrun and worker SIGKILLed after an epoch: the first node's run ends with
+    the stage's error instead of waiting, and the same two commands again resume from the last
+    checkpoint to the weights a straight two-process run trains, bit for bit."""
+    import torch
+
+    from tests.test_model import _tiny_train_config
+
+    def longer(name: str) -> str:
+        path = Path(_tiny_train_config(tmp_path, name))
+        body = yaml.safe_load(path.read_text())
+        body["train"].update(epochs=4, crops_per_frame=24)  # about a second an epoch: the kill lands between
+        path.write_text(yaml.safe_dump(body))
+        return str(path)
+
+    straight, cut = longer("straight"), longer("cut")
+    subprocess.run([sys.executable, "-m", "stages.dataset", "--config", straight], cwd=ROOT, check=True,
+                   env={**os.environ, **ENV}, capture_output=True)
+    shutil.copytree(tmp_path / "straight" / "data", tmp_path / "cut" / "data")
+    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.train", "--config"]
+    assert subprocess.run([*one_host, straight], cwd=ROOT, env={**os.environ, **ENV},
+                          capture_output=True).returncode == 0
+
+    wait = {"DEEP_SSFR_DIST_TIMEOUT": "60"}
+    procs, logs = _start_on_two_hosts(hosts, cut, tmp_path, wait, wait)
+    metrics = tmp_path / "cut" / "data" / "train"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and all(p.poll() is None for p in procs):
+        if any(len(m.read_text().splitlines()) >= 1 for m in metrics.glob("*/metrics.jsonl")):
+            break
+        time.sleep(0.05)
+    hosts.kill_tree(procs[1])  # the node's torchrun and its worker at once, as when the node dies
+    procs[1].wait()
+    began = time.monotonic()
+    code = procs[0].wait(timeout=120)
+    log = logs[0].read_text()
+    assert code != 0 and "train: error:" in log and "of 2). Where a peer process or node ended" in log, log[-3000:]
+    assert time.monotonic() - began < 50, "the survivor noticed the closed connection, not the timeout"
+    (entry,) = metrics.iterdir()
+    done = torch.load(entry / "last.pt", weights_only=True)["epoch"]
+    assert 1 <= done < 4 and not (entry / "manifest.json").exists(), done
+
+    for code, log in _train_on_two_hosts(hosts, cut, tmp_path):
+        assert code == 0, log[-3000:]
+    (a,) = (tmp_path / "straight" / "data" / "train").glob("*/last.pt")
+    one, resumed = torch.load(a, weights_only=True), torch.load(entry / "last.pt", weights_only=True)
+    assert resumed["epoch"] == 4 and [h["epoch"] for h in resumed["history"]] == [1, 2, 3, 4]
+    for k, v in one["generator"].items():
+        assert torch.equal(v, resumed["generator"][k]), k
+
+
 def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dict[str, str] | None = None,
                         env_there: dict[str, str] | None = None,
                         there_config: str | None = None) -> list[tuple[int, str]]:
-    """``torchrun -m stages.train`` over the two hosts, one process each, from different folders;
-    each node's exit code and log. Each host's name resolves to another network here (as on a node
-    with several, or Debian's 127.0.1.1): each node names its address on the cluster's network, and
-    the endpoint's node, given by address rather than name, is told it keeps the store. No
-    GLOO_SOCKET_IFNAME: gloo binds the interface that routes to the master
-    (``distributed.reaching_interface``)."""
+    """``torchrun -m stages.train`` over the two hosts (:func:`_start_on_two_hosts`) to its end; each
+    node's exit code and log."""
+    procs, logs = _start_on_two_hosts(hosts, config, tmp_path, env_here, env_there, there_config)
+    return [(proc.wait(timeout=240), log.read_text()) for proc, log in zip(procs, logs, strict=True)]
+
+
+def _start_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dict[str, str] | None = None,
+                        env_there: dict[str, str] | None = None,
+                        there_config: str | None = None) -> tuple[list[subprocess.Popen], list[Path]]:
+    """``torchrun -m stages.train`` started on the two hosts, one process each, from different folders
+    (``there_config``: the second node's config path, if another); the nodes and their logs. Each
+    host's name resolves to another network here (as on a node with several, or Debian's
+    127.0.1.1): each node names its address on the cluster's network, and the endpoint's node,
+    given by address rather than name, is told it keeps the store. No GLOO_SOCKET_IFNAME: gloo
+    binds the interface that routes to the master (``distributed.reaching_interface``)."""
     port = _free_port(hosts.here_ip)
     node = [str(BIN / "torchrun"), "--nnodes", "2", "--nproc_per_node", "1", "--rdzv-backend", "c10d",
             "--rdzv-endpoint", f"{hosts.here_ip}:{port}", "--rdzv-id", f"ssfr-{port}"]
     train = ["-m", "stages.train", "--config", config]
     there_train = ["-m", "stages.train", "--config", there_config or config]
-    logs = [tmp_path / "node0.log", tmp_path / "node1.log"]
+    logs = [tmp_path / f"node0-{port}.log", tmp_path / f"node1-{port}.log"]
     procs = [hosts.start([*node, "--local-addr", hosts.here_ip, "--rdzv-conf", "is_host=1", *train], there=False,
                          env={**ENV, **(env_here or {})}, cwd=ROOT, log=logs[0]),
              hosts.start([*node, "--local-addr", hosts.there_ip, *there_train], there=True,
                          env={**ENV, **(env_there or {})}, cwd=tmp_path, log=logs[1])]
-    return [(proc.wait(timeout=240), log.read_text()) for proc, log in zip(procs, logs, strict=True)]
+    return procs, logs
 
 
 def test_the_interface_to_a_host_is_the_one_its_route_leaves_from(hosts):

@@ -80,6 +80,9 @@ NETWORK_HINT = ("Where a node's name resolves to another network than the one it
                 "interface there> (NCCL_SOCKET_IFNAME too on GPUs) if the interface routing to the master is not "
                 "it: docs/training_at_scale.md")
 
+PEER_HINT = ("Where a peer process or node ended (its log says why), run the same command on every node again: "
+             "training resumes after the last finished epoch (last.pt)")
+
 _WORLD: World | None = None
 _WAIT: Any = None
 
