@@ -8,8 +8,10 @@ would make the others queue behind the training they are part of) and tells the 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline import cache
@@ -70,35 +72,46 @@ def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     keys, train_paths, val_paths = collect(run)  # concurrent ranks queue on the dataset entries' locks
     entry = train_entry(run, keys)
     folder = None
-    if world.is_main:
-        entry.begin(force=force, reopen=True)  # a finished run with fewer epochs continues
-        if not force and entry.is_complete() and entry.manifest().get("epochs", 0) >= cfg.epochs:
-            entry.release()
-            log.info("train: cached (%d epochs) in %s", cfg.epochs, entry.dir)
-        else:
-            folder = str(entry.dir)  # a forced run's folder is rank 0's own (named by its pid)
-    folder = world.share(folder)
+    with _peer_lost_hint(world):
+        with world.while_main_works("waiting for the training entry's lock"):  # another run may hold it
+            if world.is_main:
+                entry.begin(force=force, reopen=True)  # a finished run with fewer epochs continues
+                if not force and entry.is_complete() and entry.manifest().get("epochs", 0) >= cfg.epochs:
+                    entry.release()
+                    log.info("train: cached (%d epochs) in %s", cfg.epochs, entry.dir)
+                else:
+                    folder = str(entry.dir)  # a forced run's folder is rank 0's own (named by its pid)
+        folder = world.share(folder)
     if folder is None:
         return entry
     try:
-        best = fit(Path(folder), cfg, run.config.seed, train_paths, val_paths, run.device)
-    except TrainingError:
-        raise
-    except RuntimeError as exc:  # a collective's failure is a plain RuntimeError: say what to do on a cluster
-        if world.size == 1:
-            raise
-        raise RuntimeError(f"{exc} (rank {world.rank} of {world.size}). {distributed.PEER_HINT}") from exc
+        with _peer_lost_hint(world):
+            best = fit(Path(folder), cfg, run.config.seed, train_paths, val_paths, run.device)
     except TimeLimitReached as stop:
         if world.is_main:
             entry.release()
             log.info("train: %d of %d epochs done in %s; run the same command again to continue", stop.epoch,
                      cfg.epochs, folder)
         return entry
-    if world.is_main:
-        entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=cfg.epochs,
-                     best_val_mean_deg=best, processes=world.size)
-    world.barrier()  # every rank returns once the manifest is written
+    with _peer_lost_hint(world), world.while_main_works("writing the training entry's manifest"):
+        if world.is_main:  # every rank returns once it is written
+            entry.finish(["last.pt", "best.pt", "metrics.jsonl", "loss_curve.png"], {}, epochs=cfg.epochs,
+                         best_val_mean_deg=best, processes=world.size)
     return entry
+
+
+@contextlib.contextmanager
+def _peer_lost_hint(world: distributed.World) -> Iterator[None]:
+    """A collective's failure (a plain RuntimeError) of a run of several processes gains the rank and
+    what to do on a cluster; a training error and one process's errors pass as they are."""
+    try:
+        yield
+    except TrainingError:
+        raise
+    except RuntimeError as exc:
+        if world.size == 1:
+            raise
+        raise RuntimeError(f"{exc} (rank {world.rank} of {world.size}). {distributed.PEER_HINT}") from exc
 
 
 def main(opts: StageOptions) -> None:

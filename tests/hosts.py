@@ -60,6 +60,11 @@ class Hosts:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
 
+    def link(self, *, up: bool) -> None:
+        """Take the link between the hosts down (packets dropped, no connection closed: a failed
+        switch or a node without power, seen from its peer) or bring it up again."""
+        _ip("link", "set", self.here_if, "up" if up else "down")
+
     def close(self) -> None:
         """End every process started here (their whole groups), then the namespace and its veth."""
         for sig, grace in ((signal.SIGTERM, 3.0), (signal.SIGKILL, 10.0)):  # a Ray node drains for 30 s

@@ -180,8 +180,8 @@ def _free_port() -> int:
 
 def _ddp_worker(rank: int, port: int, folder: str) -> None:
     """One of two gloo processes, as torchrun would start it: a straight 2-epoch run reading with a
-    DataLoader worker, a 1-epoch run continued to 2 reading in-process, and a batch that does not
-    split over the processes."""
+    DataLoader worker, a 1-epoch run continued to 2 reading in-process, a batch that does not
+    split over the processes, and a time limit that rank 1's clock alone says is reached."""
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE="2", RANK=str(rank),
                       LOCAL_RANK=str(rank))
     from pipeline.model.train import TrainingError, fit
@@ -195,6 +195,14 @@ def _ddp_worker(rank: int, port: int, folder: str) -> None:
     Path(folder, f"best-{rank}.txt").write_text(repr(best))
     with pytest.raises(TrainingError, match="does not split over 2 processes"):
         fit(Path(folder, "odd"), TrainConfig(epochs=1, **{**cfg, "batch_size": 3}), 0, paths[:4], paths[4:], "cpu")
+    if rank == 1:  # a clock far ahead of rank 0's: by its own reading it would stop after an epoch
+        import types
+
+        import pipeline.model.train as training
+
+        real = time.perf_counter
+        training.time = types.SimpleNamespace(perf_counter=lambda: 1000 * real())
+    fit(Path(folder, "clock"), TrainConfig(epochs=2, time_limit_minutes=1, **cfg), 0, paths[:4], paths[4:], "cpu")
 
 
 def test_ddp_of_two_cpu_processes_trains_resumes_like_a_straight_run_and_its_checkpoint_loads(tmp_path):
@@ -215,6 +223,7 @@ def test_ddp_of_two_cpu_processes_trains_resumes_like_a_straight_run_and_its_che
     frame = load_frame(tmp_path / "frames" / "frame_0004.exr", SPEC)
     assert np.isfinite(refiner(frame.inputs, frame.fluid)).all()
     assert not (tmp_path / "odd" / "last.pt").exists()
+    assert torch.load(tmp_path / "clock" / "last.pt", weights_only=True)["epoch"] == 2  # rank 0's clock decides
     assert not list(tmp_path.rglob("*.tmp-*"))
 
 
@@ -302,3 +311,85 @@ def test_the_training_groups_timeout_is_read_from_the_environment(monkeypatch):
         monkeypatch.setenv("DEEP_SSFR_DIST_TIMEOUT", bad)
         with pytest.raises(ValueError, match=f"must be a positive number of seconds, got '{bad}'"):
             step_timeout()
+
+
+def _waiting_worker(rank: int, port: int, folder: str, case: str) -> None:
+    """One of two gloo processes with a 2 s timeout, in the rank-0-works waits of ``case``; what each
+    saw goes to ``<folder>/<case>-<rank>.txt``."""
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE="2", RANK=str(rank),
+                      LOCAL_RANK=str(rank), DEEP_SSFR_DIST_TIMEOUT="2")
+    from pipeline.model import distributed
+
+    world = distributed.start("cpu")
+    seen = []
+    if case == "work":  # longer than the timeout, then a failure, then the peer gone while rank 0 works
+        with world.while_main_works("working long"):
+            if world.is_main:
+                time.sleep(5)
+        seen.append(f"waited {world.share(rank)}")
+        try:
+            with world.while_main_works("checking"):
+                if world.is_main:
+                    raise ValueError("a bad frame")
+        except (ValueError, RuntimeError) as exc:
+            seen.append(f"{type(exc).__name__}: {exc}")
+        if not world.is_main:
+            Path(folder, f"{case}-{rank}.txt").write_text("\n".join(seen))
+            os._exit(0)  # its connections close while rank 0 works
+        try:
+            with world.while_main_works("writing"):
+                time.sleep(3)
+                seen.append("wrote")
+        except RuntimeError as exc:
+            seen.append(f"lost: {exc}")
+    else:  # "silent": rank 0 is stopped in the block (connections open, nothing answers)
+        began = time.monotonic()
+        try:
+            with world.while_main_works("validating"):
+                if world.is_main:
+                    Path(folder, "stop-me").touch()
+                    time.sleep(60)
+        except RuntimeError as exc:
+            seen.append(f"RuntimeError after {time.monotonic() - began:.0f} s: {exc}")
+    Path(folder, f"{case}-{rank}.txt").write_text("\n".join(seen))
+
+
+def test_the_others_wait_for_rank_0s_long_work_and_a_lost_peer_ends_either_side_within_the_timeout(tmp_path):
+    """While rank 0 works alone (a cache lock, validation) its heartbeats keep the others waiting past
+    the group's timeout; a failure in its work fails the others too; a peer that ends while rank 0
+    works fails rank 0 once its work is done; and a rank 0 that stops answering without closing its
+    connections (a node cut off) fails the others within the timeout, where a barrier waits for ever."""
+    import multiprocessing
+    import signal
+
+    spawn = multiprocessing.get_context("spawn")
+
+    def pair(case: str) -> list:
+        port = _free_port()
+        procs = [spawn.Process(target=_waiting_worker, args=(r, port, str(tmp_path), case)) for r in (0, 1)]
+        for p in procs:
+            p.start()
+        return procs
+
+    procs = pair("work")
+    for p in procs:
+        p.join(60)
+    zero, one = ((tmp_path / f"work-{r}.txt").read_text().splitlines() for r in (0, 1))
+    assert zero[0] == one[0] == "waited 0"
+    assert zero[1] == "ValueError: a bad frame"
+    assert one[1] == "RuntimeError: rank 0 failed while checking (its log says why)"
+    assert zero[2] == "wrote" and zero[3].startswith("lost: ") and zero[3].endswith("(while writing)"), zero
+
+    procs = pair("silent")
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "stop-me").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.kill(procs[0].pid, signal.SIGSTOP)
+    try:
+        procs[1].join(30)
+        (said,) = (tmp_path / "silent-1.txt").read_text().splitlines()
+    finally:
+        procs[0].kill()
+        procs[0].join()
+    took = int(said.split()[2])
+    assert said.startswith("RuntimeError after") and took <= 2 + 3, said

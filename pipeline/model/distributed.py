@@ -3,9 +3,11 @@
 ``torchrun --nproc_per_node N`` sets ``WORLD_SIZE``, ``RANK``, ``LOCAL_RANK`` and the rendezvous
 address in each process's environment; :func:`start` joins them into one process group (gloo on
 the CPU, nccl on CUDA, one GPU per local rank). Without those variables it returns a world of one
-process and training runs exactly as before. Waits and small messages (a folder name, the epoch's
-mean losses) go through a second gloo group with a long timeout, so the other ranks can wait while
-rank 0 queues for a cache entry's lock or validates an epoch.
+process and training runs exactly as before. Small messages (a folder name, the epoch's mean
+losses) go through a second gloo group. Every wait has the training group's timeout, however long
+rank 0's own work takes: while rank 0 queues for a cache entry's lock or validates an epoch, it
+beats once a second (:meth:`World.while_main_works`), so a peer that dies or is cut off is noticed
+within the timeout wherever the run is.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import contextlib
 import os
 import socket
 import struct
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
@@ -24,13 +28,12 @@ import torch.distributed as dist
 
 SIOCGIFADDR = 0x8915
 """Linux's ioctl for an interface's (first) IPv4 address."""
-WAIT_TIMEOUT = timedelta(days=7)
-"""How long a rank waits for rank 0 at a barrier (rank 0 may queue behind another run of the config)."""
 STEP_TIMEOUT_S = 300
-"""How long (seconds) the training group waits for a peer, in forming and in a step's all-reduce, before
-it fails, unless ``DEEP_SSFR_DIST_TIMEOUT`` says otherwise: a peer that died or cannot be reached ends
-every node's run within this, rather than torch's 30 minutes. The ranks run every step together, and
-rank 0's long work (validation, checkpoints, a cache lock) is waited for in the other group."""
+"""How long (seconds) a process waits for a peer, in forming the group, in a step's all-reduce or for a
+heartbeat, before it fails, unless ``DEEP_SSFR_DIST_TIMEOUT`` says otherwise: a peer that died or
+cannot be reached ends every node's run within this, rather than torch's 30 minutes."""
+BEAT_S = 1.0
+"""How often rank 0 tells the waiting ranks it is still there while it works alone."""
 
 
 @dataclass(frozen=True)
@@ -52,10 +55,51 @@ class World:
             return f"cuda:{self.local_rank}"
         return device
 
-    def barrier(self) -> None:
-        """Wait until every process gets here (no-op for one process)."""
-        if self.size > 1:
-            dist.barrier(group=_wait_group())
+    @contextlib.contextmanager
+    def while_main_works(self, what: str) -> Iterator[None]:
+        """Rank 0 runs the block's work (``what``, for messages) while the other ranks wait at its end,
+        however long it takes (a cache lock held by another run, validation); the block must not use
+        the process group. A thread of rank 0 all-reduces a flag with them every :data:`BEAT_S`
+        (0 working, 1 done, -1 failed), so each side fails within the timeout if the other dies or is
+        cut off, where a plain barrier would wait for ever on a peer whose connections stay open.
+        One process: the block alone."""
+        if self.size == 1:
+            yield
+            return
+        if not self.is_main:
+            yield
+            try:
+                while (flag := _beat(0.0)) == 0:
+                    pass
+            except RuntimeError as exc:
+                raise RuntimeError(f"{exc} (waiting while rank 0 was {what})") from exc
+            if flag < 0:
+                raise RuntimeError(f"rank 0 failed while {what} (its log says why)")
+            return
+        done, lost = threading.Event(), []
+        outcome = [1.0]
+
+        def beat() -> None:
+            try:
+                every = min(BEAT_S, step_timeout().total_seconds() / 4)  # well inside the others' timeout
+                while not done.wait(every):
+                    _beat(0.0)
+                _beat(outcome[0])
+            except RuntimeError as exc:  # a peer gone: the main thread raises it once its work ends
+                lost.append(exc)
+
+        beater = threading.Thread(target=beat, name="rank0-beat", daemon=True)
+        beater.start()
+        try:
+            yield
+        except BaseException:
+            outcome[0] = -1.0
+            raise
+        finally:
+            done.set()
+            beater.join()
+        if lost:
+            raise RuntimeError(f"{lost[0]} (while {what})") from lost[0]
 
     def share(self, value: Any) -> Any:
         """Rank 0's ``value`` (any picklable object) on every process."""
@@ -80,8 +124,8 @@ NETWORK_HINT = ("Where a node's name resolves to another network than the one it
                 "interface there> (NCCL_SOCKET_IFNAME too on GPUs) if the interface routing to the master is not "
                 "it: docs/training_at_scale.md")
 
-PEER_HINT = ("Where a peer process or node ended (its log says why), run the same command on every node again: "
-             "training resumes after the last finished epoch (last.pt)")
+PEER_HINT = ("Where a peer process or node ended or cannot be reached (its log says why), run the same command on "
+             "every node again once they reach each other: training resumes after the last finished epoch (last.pt)")
 
 _WORLD: World | None = None
 _WAIT: Any = None
@@ -100,10 +144,17 @@ def step_timeout() -> timedelta:
 
 
 def _wait_group() -> Any:
-    """The gloo group with the long timeout (created by :func:`start`)."""
+    """The gloo group for small messages and heartbeats (created by :func:`start`)."""
     if _WAIT is None:
         raise RuntimeError("distributed training: start() was not called in this process")
     return _WAIT
+
+
+def _beat(flag: float) -> float:
+    """One heartbeat: the sum of every rank's ``flag`` (the waiting ranks give 0)."""
+    box = torch.tensor([flag], dtype=torch.float64)
+    dist.all_reduce(box, group=_wait_group())
+    return float(box.item())
 
 
 def start(device: str) -> World:
@@ -132,7 +183,7 @@ def start(device: str) -> World:
         if not dist.is_initialized():
             dist.init_process_group("nccl" if cuda else "gloo", timeout=timeout)
             atexit.register(stop)
-        _WAIT = dist.new_group(backend="gloo", timeout=WAIT_TIMEOUT)
+        _WAIT = dist.new_group(backend="gloo", timeout=timeout)
     except RuntimeError as exc:  # torch's DistError is one
         raise RuntimeError(f"{exc} (rank {rank} of {size}, waited up to {timeout.total_seconds():g} s: "
                            f"DEEP_SSFR_DIST_TIMEOUT). {NETWORK_HINT}") from exc

@@ -107,16 +107,18 @@ def fit(folder: Path, cfg: TrainConfig, seed: int, train_paths: list[Path], val_
         refiner.end_epoch()
         sums = world.mean(sums)
         seconds = time.perf_counter() - t0
-        if main:
-            metrics, preds = validation_metrics(refiner.generator, val_frames, refiner.device)
-            record = {"epoch": epoch, **sums, "val": metrics, "train_seconds": round(seconds, 2),
-                      "images_per_second": round(steps * cfg.batch_size / seconds, 2),
-                      "lr": refiner.opt_g.param_groups[0]["lr"], "processes": world.size}
-            history.append(record)
-            best = _write_epoch(folder, refiner, history, best, val_frames, preds)
-            _log_epoch(board, record)
-        world.barrier()  # the others wait while rank 0 validates and writes
-        if cfg.time_limit_minutes and epoch < cfg.epochs and time.perf_counter() - began > 60 * cfg.time_limit_minutes:
+        with world.while_main_works(f"validating and writing epoch {epoch}"):  # the others wait
+            if main:
+                metrics, preds = validation_metrics(refiner.generator, val_frames, refiner.device)
+                record = {"epoch": epoch, **sums, "val": metrics, "train_seconds": round(seconds, 2),
+                          "images_per_second": round(steps * cfg.batch_size / seconds, 2),
+                          "lr": refiner.opt_g.param_groups[0]["lr"], "processes": world.size}
+                history.append(record)
+                best = _write_epoch(folder, refiner, history, best, val_frames, preds)
+                _log_epoch(board, record)
+        # rank 0's clock decides for every rank: each one's own could fall either side of the limit
+        if (cfg.time_limit_minutes and epoch < cfg.epochs
+                and world.share(time.perf_counter() - began > 60 * cfg.time_limit_minutes)):
             if main:
                 log.info("train: time limit of %g minutes reached after epoch %d of %d; last.pt is written and "
                          "the next run resumes", cfg.time_limit_minutes, epoch, cfg.epochs)
