@@ -388,6 +388,10 @@ class CacheEntry:
         write_json_atomic(self.dir / MANIFEST, payload)
         for journal in _journals(self.dir):
             journal.unlink()
+        # a worker killed mid-write (a lost Ray node's, whose task ran again elsewhere) left its
+        # temporary behind; this run holds the lock and its own writes are done, so none is live
+        for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
+            stale.unlink(missing_ok=True)
         if self.building is not None:  # swap the rebuilt folder in; readers saw the old one until now
             old = self.final_dir.with_name(f"{self.final_dir.name}.old-{os.getpid()}")
             if self.final_dir.exists():

@@ -182,3 +182,28 @@ def test_files_a_worker_process_writes_into_an_open_entry_are_checked_on_resume(
     assert kept == {"a.bin", "c.bin"}, "after.bin was written outside the worker's block"
     again.finish(["a.bin", "c.bin"])
     assert not list(again.dir.glob("journal*.jsonl"))
+
+
+KILLED_MID_WRITE = """
+import os, sys
+from pathlib import Path
+from pipeline import cache
+with cache.journal_into([Path(sys.argv[1])]):
+    with cache.atomic_path(Path(sys.argv[1]) / "half.bin") as tmp:
+        tmp.write_bytes(b"h" * 10)
+        os.kill(os.getpid(), 9)
+"""
+
+
+def test_a_worker_killed_mid_write_leaves_no_temporary_in_the_finished_entry(tmp_path):
+    """A Ray task on a node that dies is killed inside a write and runs again elsewhere within the
+    same run: the finished entry holds its files and none of the dead worker's temporaries."""
+    entry = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert entry.begin()
+    killed = subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(entry.dir.resolve())], cwd=ROOT)
+    assert killed.returncode == -9
+    assert [p.name for p in entry.dir.glob(".half.bin.tmp-*")], "the killed write left its temporary"
+    with cache.atomic_path(entry.path("half.bin")) as tmp:  # the task again, on another node
+        tmp.write_bytes(b"h" * 10)
+    entry.finish(["half.bin"])
+    assert sorted(p.name for p in entry.dir.iterdir()) == ["half.bin", "manifest.json"]

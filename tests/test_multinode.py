@@ -28,6 +28,7 @@ from tests.hosts import Hosts, two_hosts
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
+RAY_START = [str(BIN / "ray"), "start", "--block", "--disable-usage-stats"]
 ENV = {"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0", "DEEP_SSFR_DEVICE": "cpu"}
 
 
@@ -56,6 +57,29 @@ class Cluster:
     address: str
     env: dict[str, str]
     """What a driver of this cluster needs in its environment (the nodes' token, the address)."""
+    folder: Path
+    node: subprocess.Popen | None = None
+    """The second node's ``ray start --block``, in the namespace."""
+    starts: int = 0
+
+    def start_node(self) -> None:
+        """``ray start --address`` on the second host (2 CPUs, a folder and Ray temp folder of its own
+        each time: a killed node's stay behind), and wait until the cluster counts two nodes."""
+        self.starts += 1
+        name = f"node{self.starts}"
+        (self.folder / f"{name}_cwd").mkdir()
+        self.node = self.hosts.start(
+            [*RAY_START, "--address", self.address, "--node-ip-address", self.hosts.there_ip, "--num-cpus", "2",
+             "--temp-dir", str(self.folder / name)], there=True, env=self.env, cwd=self.folder / f"{name}_cwd",
+            log=self.folder / f"{name}.log")
+        alive = self.drive("""if True:
+            import time, ray
+            ray.init(configure_logging=False, log_to_driver=False)
+            deadline = time.monotonic() + 60
+            while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
+                time.sleep(0.2)
+            print(sum(n["Alive"] for n in ray.nodes()))""")
+        assert alive == 2, (self.folder / f"{name}.log").read_text()[-2000:]
 
     def drive(self, code: str) -> object:
         """Run ``code`` as a driver program here (a fresh process, as a user's would be) and return what
@@ -85,25 +109,13 @@ def cluster(hosts):
     port = _free_port(hosts.here_ip)
     address = f"{hosts.here_ip}:{port}"
     env = {**ENV, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
-    for name in ("head", "node"):
-        (folder / f"{name}_cwd").mkdir()
-    ray_start = [str(BIN / "ray"), "start", "--block", "--disable-usage-stats"]
-    hosts.start([*ray_start, "--head", "--node-ip-address", hosts.here_ip, "--port", str(port), "--num-cpus", "1",
+    (folder / "head_cwd").mkdir()
+    hosts.start([*RAY_START, "--head", "--node-ip-address", hosts.here_ip, "--port", str(port), "--num-cpus", "1",
                  "--temp-dir", str(folder / "head"), "--include-dashboard", "false"], there=False, env=env,
                 cwd=folder / "head_cwd", log=folder / "head.log")
     _wait_for_port(hosts.here_ip, port, 60, "the Ray head")
-    hosts.start([*ray_start, "--address", address, "--node-ip-address", hosts.there_ip, "--num-cpus", "2",
-                 "--temp-dir", str(folder / "node")], there=True, env=env, cwd=folder / "node_cwd",
-                log=folder / "node.log")
-    cluster = Cluster(hosts, address, {**env, "RAY_ADDRESS": address})
-    alive = cluster.drive("""if True:
-        import time, ray
-        ray.init(configure_logging=False, log_to_driver=False)
-        deadline = time.monotonic() + 60
-        while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
-            time.sleep(0.2)
-        print(sum(n["Alive"] for n in ray.nodes()))""")
-    assert alive == 2, (folder / "node.log").read_text()[-2000:]
+    cluster = Cluster(hosts, address, {**env, "RAY_ADDRESS": address}, folder)
+    cluster.start_node()
     yield cluster
     hosts.close()  # the nodes end before their folders go
     shutil.rmtree(folder, ignore_errors=True)
@@ -394,24 +406,10 @@ def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster
     with no temporary file or journal left."""
     import signal
 
-    body = yaml.safe_load(tiny_dam.read_text())
-    body["simulate"]["frames"] = 30
-    body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
-    serial = tiny_dam
-    serial.write_text(yaml.safe_dump(body))
-    sharded = tmp_path / "sharded" / "config.yaml"
-    sharded.parent.mkdir()
-    body.update(data_dir=str(sharded.parent / "data"), scene_dir=str(tiny_dam.parent / "scenes"), executor="ray",
-                ray_address=cluster.address)
-    sharded.write_text(yaml.safe_dump(body))
-    assert cli.main(["dataset", "--config", str(serial)]) == 0
-    assert cli.main(["simulate", "--config", str(sharded)]) == 0
+    serial, sharded, views = _sixty_views(cluster, tiny_dam, tmp_path)
     proc = subprocess.Popen([str(BIN / "deep-ssfr"), "dataset", "--config", str(sharded)], cwd=ROOT,
                             env={**os.environ, **cluster.env}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    views = sharded.parent / "data" / "dataset"
-    deadline = time.monotonic() + 120
-    while len(list(views.glob("*/*/frame_*.exr"))) < 6 and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
+    _wait_for_views(views, 6, proc)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     (entry,) = views.iterdir()
@@ -428,3 +426,55 @@ def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster
     assert "ray: 3 tasks" in log and f"{records[0]['file']} is damaged (200 bytes" in log, log[-2000:]
     _same_exrs(serial.parent / "data" / "dataset", views, 60)
     assert not list(views.rglob("*.tmp-*")) and not list(views.rglob("journal*.jsonl"))
+
+
+def test_a_node_killed_while_its_tasks_write_leaves_them_to_the_other_node(cluster, tiny_dam, tmp_path):
+    """The second node SIGKILLed (its raylet and the workers writing two of the three shards) in a
+    dataset run over the cluster: Ray runs the dead node's tasks again on the head, and the one
+    command ends with a serial run's bytes, leaving none of the dead tasks' temporary files or
+    journals behind. The node then joins again, as a restarted node would."""
+    serial, sharded, views = _sixty_views(cluster, tiny_dam, tmp_path)
+    log = tmp_path / "driver.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([str(BIN / "deep-ssfr"), "dataset", "--config", str(sharded)], cwd=ROOT,
+                                env={**os.environ, **cluster.env}, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        _wait_for_views(views, 6, proc)
+        (entry,) = views.iterdir()
+        assert cluster.node is not None
+        cluster.hosts.kill_tree(cluster.node)
+        written = len(list(entry.glob("*/frame_*.exr")))
+        assert written < 40, f"{written} views: a task of the node's must still be writing when it dies"
+        code = proc.wait(timeout=240)
+    finally:
+        cluster.node.wait()
+        cluster.start_node()  # for the tests after this one
+    assert code == 0, log.read_text()[-3000:]
+    assert "ray: 3 tasks" in log.read_text()
+    _same_exrs(serial.parent / "data" / "dataset", views, 60)
+    assert not list(views.rglob("*.tmp-*")) and not list(views.rglob("journal*.jsonl"))
+
+
+def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path, Path, Path]:
+    """The dataset of 30 frames (60 views at 48 x 48) built serially from ``tiny_dam``, and a config
+    of the same work sharded over the cluster into a cache of its own, its frames simulated: the
+    serial config, the sharded one and the sharded dataset's folder."""
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["simulate"]["frames"] = 30
+    body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    sharded = tmp_path / "sharded" / "config.yaml"
+    sharded.parent.mkdir()
+    body.update(data_dir=str(sharded.parent / "data"), scene_dir=str(tiny_dam.parent / "scenes"), executor="ray",
+                ray_address=cluster.address)
+    sharded.write_text(yaml.safe_dump(body))
+    assert cli.main(["dataset", "--config", str(tiny_dam)]) == 0
+    assert cli.main(["simulate", "--config", str(sharded)]) == 0
+    return tiny_dam, sharded, sharded.parent / "data" / "dataset"
+
+
+def _wait_for_views(views: Path, count: int, proc: subprocess.Popen) -> None:
+    """Until ``count`` views are written under ``views`` (or the run has ended)."""
+    deadline = time.monotonic() + 120
+    while len(list(views.glob("*/*/frame_*.exr"))) < count and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
