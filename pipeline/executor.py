@@ -125,9 +125,29 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
         with tqdm(total=len(tasks), desc="ray tasks", unit="task", leave=False) as bar:
             while pending:  # as they finish, so that the bar moves and a failed task stops the run early
                 done, pending = ray.wait(pending, num_returns=1)
-                results[order[done[0]]] = ray.get(done[0])
+                results[order[done[0]]] = _result(ray, done[0], where)
                 bar.update()
         return results
+
+
+def _result(ray: Any, ref: Any, where: str) -> Any:
+    """A finished task's result; its failure raised as a local run's would be, so that the stage's
+    one-line error says what went wrong rather than the remote traceback (``DEEP_SSFR_DEBUG=1``
+    shows it, chained), and Ray's own failures (retries spent on lost nodes) as one line too."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as exc:
+        if isinstance(exc.cause, Exception):
+            raise exc.cause from exc
+        raise RuntimeError(f"a Ray task on {where} failed: {_first_line(exc)}") from exc
+    except ray.exceptions.RayError as exc:
+        raise RuntimeError(f"a Ray task on {where} failed ({type(exc).__name__}: {_first_line(exc)}); the "
+                           "files it finished are kept and a re-run resumes") from exc
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first non-empty line of ``exc``'s message (Ray's run to many lines)."""
+    return next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
 
 
 def run_sharded(fn: Callable[[list[int]], R], count: int, executor: str, address: str = "",

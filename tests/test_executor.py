@@ -84,6 +84,40 @@ def test_a_command_joins_one_cluster_for_all_its_work():
 
 
 @pytest.mark.slow
+def test_a_failed_ray_task_is_the_stages_one_line_error(tiny_dam, capsys):
+    """A task's own error reaches the stage as a local run's would (the corrupt frame named, in one
+    line, not the remote traceback), and Ray's failures, here a worker that dies at every one of its
+    retries, as one line naming the cluster."""
+    import os
+
+    ray = pytest.importorskip("ray")
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["dataset"] = {"width": 32, "height": 32, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
+    tiny_dam.write_text(yaml.safe_dump(body))
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
+    (frame,) = tiny_dam.parent.glob("data/simulate/*/frame_0004.npz")
+    frame.write_bytes(bytes(frame.stat().st_size))  # damaged in place: its recorded size still holds
+    capsys.readouterr()
+    assert cli.main(["dataset", "--config", str(tiny_dam), "--executor", "ray"]) == 1
+    (line,) = [x for x in capsys.readouterr().err.splitlines() if "error" in x]
+    assert line.startswith(f"dataset: error: corrupt cache file {frame} ("), line
+
+    def dies(_):
+        os._exit(3)
+
+    ray.init(num_cpus=2, include_dashboard=False, configure_logging=False, log_to_driver=False)
+    try:
+        with pytest.raises(RuntimeError, match=r"^a Ray task on this machine failed \(WorkerCrashedError: .*\); "
+                                               r"the files it finished are kept and a re-run resumes$"):
+            run_tasks(dies, [0], "ray")
+        with pytest.raises(ValueError, match="^math domain error$") as raised:
+            run_tasks(lambda x: __import__("math").sqrt(x), [1, -1], "ray")
+        assert type(raised.value) is ValueError, "the task's own error, not Ray's wrapper of it"
+    finally:
+        ray.shutdown()
+
+
+@pytest.mark.slow
 def test_ray_tasks_of_a_gpu_run_each_hold_a_gpu():
     """A CUDA run's Ray tasks ask for their share of a GPU, so each gets its own instead of all of
     them crowding onto the node's first: on a cluster told it has two GPUs each task is given one
