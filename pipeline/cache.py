@@ -309,8 +309,7 @@ class CacheEntry:
                 shutil.rmtree(old)  # a killed forced run's half-built folder
             self.building = self.final_dir.with_name(f"{self.final_dir.name}.new-{os.getpid()}")
         self.dir.mkdir(parents=True, exist_ok=True)
-        for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
-            stale.unlink()
+        self._drop_temporaries()
         if journals := _journals(self.dir):
             records: dict[str, dict] = {}
             for journal in journals:
@@ -353,6 +352,12 @@ class CacheEntry:
             _HELD.discard(self.held)
             self.held = None
 
+    def _drop_temporaries(self) -> None:
+        """Delete the folder's temporary files: a killed run's or worker's, never a live one's, since
+        the caller holds the entry's lock and no write of its own is under way."""
+        for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
+            stale.unlink(missing_ok=True)
+
     def _drop_damaged(self, checks: dict[str, dict]) -> bool:
         """Delete (and name in the log) the recorded files that are missing or differ in size (or
         hash, with --verify), so the stage's resume redoes them; True when there were any."""
@@ -388,10 +393,7 @@ class CacheEntry:
         write_json_atomic(self.dir / MANIFEST, payload)
         for journal in _journals(self.dir):
             journal.unlink()
-        # a worker killed mid-write (a lost Ray node's, whose task ran again elsewhere) left its
-        # temporary behind; this run holds the lock and its own writes are done, so none is live
-        for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
-            stale.unlink(missing_ok=True)
+        self._drop_temporaries()  # of workers killed mid-write (a lost Ray node's, its task run again)
         if self.building is not None:  # swap the rebuilt folder in; readers saw the old one until now
             old = self.final_dir.with_name(f"{self.final_dir.name}.old-{os.getpid()}")
             if self.final_dir.exists():

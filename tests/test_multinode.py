@@ -424,7 +424,7 @@ def test_a_killed_driver_of_a_cluster_run_resumes_to_a_serial_runs_bytes(cluster
     damaged.write_bytes(damaged.read_bytes()[:200])  # a task's finished view, damaged after the kill
     log = _command(cluster, ["dataset", "--config", str(sharded)], ROOT)
     assert "ray: 3 tasks" in log and f"{records[0]['file']} is damaged (200 bytes" in log, log[-2000:]
-    _same_exrs(serial.parent / "data" / "dataset", views, 60)
+    _same_exrs(serial, views, 60)
     assert not list(views.rglob("*.tmp-*")) and not list(views.rglob("journal*.jsonl"))
 
 
@@ -447,18 +447,20 @@ def test_a_node_killed_while_its_tasks_write_leaves_them_to_the_other_node(clust
         assert written < 40, f"{written} views: a task of the node's must still be writing when it dies"
         code = proc.wait(timeout=240)
     finally:
+        proc.kill()  # ended already, unless an assertion above failed
+        cluster.hosts.kill_tree(cluster.node)
         cluster.node.wait()
         cluster.start_node()  # for the tests after this one
     assert code == 0, log.read_text()[-3000:]
     assert "ray: 3 tasks" in log.read_text()
-    _same_exrs(serial.parent / "data" / "dataset", views, 60)
+    _same_exrs(serial, views, 60)
     assert not list(views.rglob("*.tmp-*")) and not list(views.rglob("journal*.jsonl"))
 
 
 def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path, Path, Path]:
     """The dataset of 30 frames (60 views at 48 x 48) built serially from ``tiny_dam``, and a config
     of the same work sharded over the cluster into a cache of its own, its frames simulated: the
-    serial config, the sharded one and the sharded dataset's folder."""
+    serial dataset's folder, the sharded config and the sharded dataset's folder."""
     body = yaml.safe_load(tiny_dam.read_text())
     body["simulate"]["frames"] = 30
     body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
@@ -470,7 +472,7 @@ def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path
     sharded.write_text(yaml.safe_dump(body))
     assert cli.main(["dataset", "--config", str(tiny_dam)]) == 0
     assert cli.main(["simulate", "--config", str(sharded)]) == 0
-    return tiny_dam, sharded, sharded.parent / "data" / "dataset"
+    return tiny_dam.parent / "data" / "dataset", sharded, sharded.parent / "data" / "dataset"
 
 
 def _wait_for_views(views: Path, count: int, proc: subprocess.Popen) -> None:
