@@ -17,6 +17,7 @@ import importlib.util
 import json
 import logging
 import os
+import secrets
 import shutil
 import threading
 import time
@@ -112,21 +113,68 @@ def make_key(payload: dict[str, Any]) -> str:
 JOURNAL = "journal.jsonl"
 """The journal of the process that opened an entry; each worker process of a Ray run keeps its own
 beside it (``journal-<host>-<pid>-<random>.jsonl``), since appends from several NFS clients can interleave."""
-_OPEN_ENTRIES: dict[Path, tuple[threading.Lock, str]] = {}  # open entries' folders: lock, journal name
+RUN_TOKEN = ".run-token"
+"""The token of the run that holds an entry, from ``begin`` to ``finish``: its workers' writes check
+it, so a worker that outlives its run (on a cut-off node, its task already run again elsewhere)
+writes nothing more into the entry."""
+
+
+@dataclass(frozen=True)
+class _Open:
+    """An entry this process writes into: its journal, and the run token its writes need."""
+
+    lock: threading.Lock
+    journal: str
+    token: str
+    owner: bool
+    """This process began the entry (and holds its lock); else it is a worker writing into another's."""
+
+
+_OPEN_ENTRIES: dict[Path, _Open] = {}  # the folders of the entries this process writes into
 _HELD: set[Any] = set()  # the entry locks (filelock.FileLock) this process holds
 
 
-def _journal(target: Path) -> None:
+class StaleWrite(RuntimeError):
+    """A worker's write into an entry whose run has finished or given way to another run."""
+
+
+def _holder(target: Path) -> tuple[Path, _Open] | None:
+    """The open entry whose folder holds ``target``, if any."""
+    target = Path(target).resolve()
+    for folder, state in list(_OPEN_ENTRIES.items()):
+        if folder in target.parents:
+            return folder, state
+    return None
+
+
+def _fence(held: tuple[Path, _Open] | None, target: Path) -> None:
+    """Refuse a worker's write into an entry that its run no longer holds: the entry's run token is
+    gone (finished; a forced run's folder swapped in) or another's (the driver was killed and a new
+    run resumed). The owner's writes pass: it holds the lock."""
+    if held is None or held[1].owner:
+        return
+    folder, state = held
+    try:
+        token = (folder / RUN_TOKEN).read_text()
+    except FileNotFoundError:
+        token = ""
+    if token != state.token:
+        why = "another run has taken it over" if token else "its run has finished"
+        raise StaleWrite(f"{target}: not written, since {why} (a worker that outlived its run, its task "
+                         "run again elsewhere)")
+
+
+def _journal(held: tuple[Path, _Open] | None, target: Path) -> None:
     """Append a finished file's size and hash to the journal of the open entry that holds it, so a
     resumed run can check the files of an unfinished entry as the manifest checks a finished one."""
+    if held is None:
+        return
+    folder, state = held
     target = Path(target).resolve()
-    for folder, (lock, journal) in list(_OPEN_ENTRIES.items()):
-        if folder in target.parents:
-            line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
-                               "blake2b": file_hash(target)})
-            with lock, open(folder / journal, "a") as fh:
-                fh.write(line + "\n")
-            return
+    line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
+                       "blake2b": file_hash(target)})
+    with state.lock, open(folder / state.journal, "a") as fh:
+        fh.write(line + "\n")
 
 
 def _journals(folder: Path) -> list[Path]:
@@ -140,43 +188,50 @@ def _journals(folder: Path) -> list[Path]:
 def _process_tag() -> str:
     """This process's name among a cluster's: host, pid and a random part (containers on several
     nodes may share a host name and pid)."""
-    import secrets
     import socket
 
     return f"{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(4)}"
 
 
-def open_entries() -> list[Path]:
-    """The folders of the entries this process has begun and not finished (for :func:`journal_into`)."""
-    return list(_OPEN_ENTRIES)
+def open_entries() -> list[tuple[Path, str]]:
+    """The folders of the entries this process has begun and not finished, with their run tokens
+    (for :func:`journal_into` in the workers it starts)."""
+    return [(folder, state.token) for folder, state in _OPEN_ENTRIES.items() if state.owner]
 
 
 @contextmanager
-def journal_into(folders: list[Path]) -> Iterator[None]:
-    """Journal the files this process finishes inside ``folders``, entries another process opened
-    (a Ray task writing into its driver's entry), in a journal of this process's own there, so a
-    resumed run checks them as it checks the driver's."""
-    mine = [Path(f) for f in folders if Path(f) not in _OPEN_ENTRIES]
+def journal_into(entries: list[tuple[Path, str]]) -> Iterator[None]:
+    """Write into ``entries`` (folders and run tokens from :func:`open_entries`), entries another
+    process opened (a Ray task writing into its driver's entry): the files finished there go into a
+    journal of this process's own, so a resumed run checks them as it checks the driver's, and none
+    is written once the entry's run no longer holds it (:data:`RUN_TOKEN`)."""
+    mine = [(Path(f), token) for f, token in entries if Path(f) not in _OPEN_ENTRIES]
     name = f"journal-{_process_tag()}.jsonl"
-    for folder in mine:
-        _OPEN_ENTRIES[folder] = (threading.Lock(), name)
+    for folder, token in mine:
+        _OPEN_ENTRIES[folder] = _Open(threading.Lock(), name, token, owner=False)
     try:
         yield
     finally:
-        for folder in mine:
+        for folder, _ in mine:
             _OPEN_ENTRIES.pop(folder, None)
 
 
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
-    """Yield a temporary sibling path; on success rename it over ``target``, else delete it."""
+    """Yield a temporary sibling path; on success rename it over ``target``, else delete it. Inside
+    an entry another process opened, the write is refused (:class:`StaleWrite`) once that run no
+    longer holds it, checked before the folder is made (a finished forced run's is gone) and again
+    before the rename."""
     target = Path(target)
+    held = _holder(target)
+    _fence(held, target)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}")
     try:
         yield tmp
+        _fence(held, target)
         os.replace(tmp, target)
-        _journal(target)
+        _journal(held, target)
         log.debug("wrote %s", target)  # one event per finished file (tests kill runs on them)
     except OSError as exc:
         if exc.filename is None:  # a writer that does not say which file: this one
@@ -309,6 +364,10 @@ class CacheEntry:
                 shutil.rmtree(old)  # a killed forced run's half-built folder
             self.building = self.final_dir.with_name(f"{self.final_dir.name}.new-{os.getpid()}")
         self.dir.mkdir(parents=True, exist_ok=True)
+        token = secrets.token_hex(8)  # from now on a worker of an earlier, killed run writes nothing here
+        tmp = self.dir / f"{RUN_TOKEN}{_TMP_MARK}{os.getpid()}"
+        tmp.write_text(token)
+        os.replace(tmp, self.dir / RUN_TOKEN)
         self._drop_temporaries()
         if journals := _journals(self.dir):
             records: dict[str, dict] = {}
@@ -328,7 +387,7 @@ class CacheEntry:
             for worker in journals:
                 if worker.name != JOURNAL:
                     worker.unlink()
-        _OPEN_ENTRIES[self.dir.resolve()] = (threading.Lock(), JOURNAL)
+        _OPEN_ENTRIES[self.dir.resolve()] = _Open(threading.Lock(), JOURNAL, token, owner=True)
         return True
 
     def _lock(self) -> None:
@@ -346,7 +405,11 @@ class CacheEntry:
         _HELD.add(lock)
 
     def release(self) -> None:
-        """Give up the entry's lock (``finish`` does; a stage that stops early may)."""
+        """Give up the entry's lock (``finish`` does; a stage that stops early may): the files this
+        process writes there from now on are no longer journaled, and its workers' are refused."""
+        state = _OPEN_ENTRIES.pop(self.dir.resolve(), None)
+        if state is not None and state.owner:
+            (self.dir / RUN_TOKEN).unlink(missing_ok=True)
         if self.held is not None:
             self.held.release(force=True)
             _HELD.discard(self.held)
@@ -377,6 +440,7 @@ class CacheEntry:
 
     def finish(self, files: list[str], timings: dict | None = None, **extra: Any) -> None:
         """Write the manifest last: config, inputs, code version, timings and files."""
+        (self.dir / RUN_TOKEN).unlink(missing_ok=True)  # the run's workers write nothing more here
         payload = {
             "stage": self.stage,
             "name": self.name,
@@ -406,6 +470,9 @@ class CacheEntry:
 
 def release_all() -> None:
     """Give up every entry lock this process holds (a stage that failed half way holds its own)."""
+    for folder in [f for f, state in _OPEN_ENTRIES.items() if state.owner]:
+        _OPEN_ENTRIES.pop(folder)
+        (folder / RUN_TOKEN).unlink(missing_ok=True)
     for lock in list(_HELD):
         lock.release(force=True)
     _HELD.clear()

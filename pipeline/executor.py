@@ -113,10 +113,10 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
                                "its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
         log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, nodes, "s" * (nodes != 1),
                  have.get("CPU", 0), gpus)
-        folders = cache.open_entries()
+        entries = cache.open_entries()
 
         def journaled(task: T) -> R:  # a function, not a partial: ray.remote takes only functions
-            return _journaled(fn, folders, task)
+            return _journaled(fn, entries, task)
 
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(journaled) if _is_cuda(device) else ray.remote(journaled)
         pending = [remote.remote(t) for t in tasks]
@@ -176,10 +176,11 @@ def cluster_slots(executor: str, device: str = "cpu", address: str = "") -> int:
     return os.cpu_count() or 1
 
 
-def _journaled(fn: Callable[[T], R], folders: list[Any], task: T) -> R:
+def _journaled(fn: Callable[[T], R], entries: list[tuple[Any, str]], task: T) -> R:
     """``fn(task)`` in a Ray worker, its finished files inside the driver's open cache entries
-    journaled there (:func:`pipeline.cache.journal_into`), so a resume after a kill checks them."""
-    with cache.journal_into(folders):
+    journaled there (:func:`pipeline.cache.journal_into`), so a resume after a kill checks them, and
+    refused once the driver's run no longer holds them (a worker on a cut-off node that outlives it)."""
+    with cache.journal_into(entries):
         return fn(task)
 
 

@@ -145,8 +145,8 @@ WORKER = """if True:
     from pipeline import cache
 
     folder = Path(sys.argv[1])
-    with cache.journal_into([folder]):
-        for name in sys.argv[2:]:
+    with cache.journal_into([(folder, sys.argv[2])]):
+        for name in sys.argv[3:]:
             with cache.atomic_path(folder / name) as tmp:
                 tmp.write_bytes(name.encode() * 50)
     with cache.atomic_path(folder / "after.bin") as tmp:  # out of the block: not this process's to record
@@ -162,8 +162,10 @@ def test_files_a_worker_process_writes_into_an_open_entry_are_checked_on_resume(
     assert entry.begin()
     with cache.atomic_path(entry.path("driver.bin")) as tmp:
         tmp.write_bytes(b"d" * 100)
+    ((folder, token),) = cache.open_entries()
+    assert folder == entry.dir.resolve()
     for names in (["a.bin", "b.bin"], ["c.bin"]):  # two workers, as two Ray tasks
-        subprocess.run([sys.executable, "-c", WORKER, str(entry.dir.resolve()), *names], cwd=ROOT, check=True)
+        subprocess.run([sys.executable, "-c", WORKER, str(folder), token, *names], cwd=ROOT, check=True)
     workers = [p.name for p in entry.dir.glob("journal-*.jsonl")]
     assert len(workers) == 2 and all(re.fullmatch(r"journal-.+-\d+-[0-9a-f]{8}\.jsonl", n) for n in workers), workers
     assert "driver.bin" in entry.path("journal.jsonl").read_text()
@@ -188,7 +190,7 @@ KILLED_MID_WRITE = """
 import os, sys
 from pathlib import Path
 from pipeline import cache
-with cache.journal_into([Path(sys.argv[1])]):
+with cache.journal_into([(Path(sys.argv[1]), sys.argv[2])]):
     with cache.atomic_path(Path(sys.argv[1]) / "half.bin") as tmp:
         tmp.write_bytes(b"h" * 10)
         os.kill(os.getpid(), 9)
@@ -200,10 +202,66 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_in_the_finished_entry(tmp
     same run: the finished entry holds its files and none of the dead worker's temporaries."""
     entry = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
     assert entry.begin()
-    killed = subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(entry.dir.resolve())], cwd=ROOT)
+    ((folder, token),) = cache.open_entries()
+    killed = subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(folder), token], cwd=ROOT)
     assert killed.returncode == -9
     assert [p.name for p in entry.dir.glob(".half.bin.tmp-*")], "the killed write left its temporary"
     with cache.atomic_path(entry.path("half.bin")) as tmp:  # the task again, on another node
         tmp.write_bytes(b"h" * 10)
     entry.finish(["half.bin"])
     assert sorted(p.name for p in entry.dir.iterdir()) == ["half.bin", "manifest.json"]
+
+
+LATE = """if True:
+    import sys
+    from pathlib import Path
+    from pipeline import cache
+
+    folder = Path(sys.argv[1])
+    with cache.journal_into([(folder, sys.argv[2])]):
+        try:
+            with cache.atomic_path(folder / "views" / "late.bin") as tmp:
+                tmp.write_bytes(b"late")
+        except cache.StaleWrite as exc:
+            print(exc)
+"""
+
+
+def _late_write(folder: Path, token: str) -> str:
+    """A worker's write into ``folder`` under ``token``: what it printed (the refusal, or nothing)."""
+    return subprocess.run([sys.executable, "-c", LATE, str(folder), token], cwd=ROOT, check=True,
+                          capture_output=True, text=True).stdout.strip()
+
+
+def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
+    """A Ray worker cut off from its cluster keeps running while its task runs again elsewhere: once
+    its run has finished the entry, or a new run has taken over from a killed one, its writes are
+    refused, and the entry gets no file, temporary, journal or (forced) folder of it."""
+    def entry():
+        return cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+
+    first = entry()
+    assert first.begin()
+    ((folder, token),) = cache.open_entries()
+    assert _late_write(folder, token) == "", "a worker of the live run writes"
+    assert first.path("views/late.bin").read_bytes() == b"late"
+    first.release()  # the driver is killed; a new run resumes the entry
+    second = entry()
+    assert second.begin()
+    ((_, token2),) = cache.open_entries()
+    assert token2 != token
+    first.path("views/late.bin").unlink()
+    assert "another run has taken it over" in _late_write(folder, token)
+    assert not first.path("views/late.bin").exists()
+    second.finish([])
+    assert "its run has finished" in _late_write(folder, token2)
+    assert sorted(p.name for p in folder.rglob("*")) == ["manifest.json", "views"]
+
+    forced = entry()
+    assert forced.begin(force=True)
+    ((building, token3),) = cache.open_entries()
+    assert building.name.startswith(f"{folder.name}.new-")
+    forced.finish([])
+    assert "its run has finished" in _late_write(building, token3)
+    assert not building.exists(), "the late write made the swapped-in folder again"
+    assert sorted(p.name for p in folder.parent.iterdir()) == [folder.name]
