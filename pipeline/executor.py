@@ -33,6 +33,13 @@ R = TypeVar("R")
 TASKS_PER_GPU = 1
 """Ray tasks sharing one GPU when the run's device is CUDA (each holds 1 / this of it)."""
 
+RAY_KEEPALIVE = {"RAY_grpc_client_keepalive_time_ms": "60000", "RAY_grpc_client_keepalive_timeout_ms": "20000"}
+"""The driver's gRPC keepalive, set (unless the environment sets it) before Ray is imported, which
+reads it then. A node that hangs, or is cut off with no connection closed, leaves the driver
+waiting on its tasks until a keepalive ping goes unanswered: 7 minutes with Ray's defaults (300 s,
+then 120 s for the answer), about 80 s with these, after which Ray runs the tasks again elsewhere.
+Ray's servers refuse pings more often than once a minute (``too_many_pings``)."""
+
 
 def _is_cuda(device: str) -> bool:
     return str(device).startswith("cuda")
@@ -73,6 +80,8 @@ def connected(executor: str, address: str = "") -> Iterator[None]:
         return
     if executor != "ray":
         raise ValueError(f"unknown executor {executor!r} (local or ray)")
+    for name, value in RAY_KEEPALIVE.items():
+        os.environ.setdefault(name, value)  # read once, when Ray is first imported
     try:
         import ray
     except ImportError:

@@ -46,6 +46,20 @@ class Hosts:
     def kill_tree(self, proc: subprocess.Popen) -> None:
         """SIGKILL ``proc`` and every process descended from it at once, as when their node dies
         (torchrun starts its workers in sessions of their own: killing its group leaves them running)."""
+        self.signal_tree(proc, signal.SIGKILL)
+
+    def signal_tree(self, proc: subprocess.Popen, sig: int) -> list[int]:
+        """Send ``sig`` to ``proc`` and every process descended from it (SIGSTOP: a node that hangs,
+        as a frozen VM does); their process ids."""
+        tree = self.tree(proc)
+        for pid in tree:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+        return tree
+
+    @staticmethod
+    def tree(proc: subprocess.Popen) -> list[int]:
+        """The process ids of ``proc`` and every process descended from it, ``proc``'s first."""
         children: dict[int, list[int]] = {}
         for stat in Path("/proc").glob("[0-9]*/stat"):
             with contextlib.suppress(OSError, IndexError, ValueError):
@@ -56,9 +70,7 @@ class Hosts:
             pid = todo.pop()
             tree.append(pid)
             todo.extend(children.get(pid, []))
-        for pid in tree:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
+        return tree
 
     def link(self, *, up: bool) -> None:
         """Take the link between the hosts down (packets dropped, no connection closed: a failed

@@ -64,7 +64,8 @@ class Cluster:
 
     def start_node(self) -> None:
         """``ray start --address`` on the second host (2 CPUs, a folder and Ray temp folder of its own
-        each time: a killed node's stay behind), and wait until the cluster counts two nodes."""
+        each time: a killed node's stay behind), and wait until the cluster counts two live nodes (a
+        killed node that hung first counts until Ray's health checks find it dead)."""
         self.starts += 1
         name = f"node{self.starts}"
         (self.folder / f"{name}_cwd").mkdir()
@@ -75,8 +76,8 @@ class Cluster:
         alive = self.drive("""if True:
             import time, ray
             ray.init(configure_logging=False, log_to_driver=False)
-            deadline = time.monotonic() + 60
-            while sum(n["Alive"] for n in ray.nodes()) < 2 and time.monotonic() < deadline:
+            deadline = time.monotonic() + 90  # a hung node before it is found dead: Ray's health checks
+            while sum(n["Alive"] for n in ray.nodes()) != 2 and time.monotonic() < deadline:
                 time.sleep(0.2)
             print(sum(n["Alive"] for n in ray.nodes()))""")
         assert alive == 2, (self.folder / f"{name}.log").read_text()[-2000:]
@@ -480,3 +481,65 @@ def _wait_for_views(views: Path, count: int, proc: subprocess.Popen) -> None:
     deadline = time.monotonic() + 120
     while len(list(views.glob("*/*/frame_*.exr"))) < count and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
+
+
+def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster, tiny_dam, tmp_path):
+    """The second node frozen (SIGSTOP of its raylet and workers: a hung machine, or one cut off with
+    its storage still mounted, where no connection closes) while its two tasks write: the driver's
+    keepalive (``executor.RAY_KEEPALIVE``, not Ray's 7 minutes) finds their connections dead, Ray
+    runs the tasks again on the head, and the command ends whole. The node's workers, thawed once
+    the run has finished and their raylet still frozen, go on with their views, and the finished
+    entry gets none of their writes: no file rewritten, no journal, no temporary."""
+    import signal
+
+    serial, sharded, views = _sixty_views(cluster, tiny_dam, tmp_path)
+    log = tmp_path / "driver.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([str(BIN / "deep-ssfr"), "dataset", "--config", str(sharded)], cwd=ROOT,
+                                env={**os.environ, **cluster.env}, stdout=out, stderr=subprocess.STDOUT)
+    assert cluster.node is not None
+    try:
+        deadline = time.monotonic() + 120
+        while (len(_writers(views).keys() & set(cluster.hosts.tree(cluster.node))) < 2 and proc.poll() is None
+               and time.monotonic() < deadline):
+            time.sleep(0.05)  # until both of the node's tasks have written a view
+        frozen = cluster.hosts.signal_tree(cluster.node, signal.SIGSTOP)
+        views_of = {pid: n for pid, n in _writers(views).items() if pid in frozen}
+        assert len(views_of) == 2 and max(views_of.values()) < 20, f"{views_of}: the node's two tasks must be writing"
+        workers = list(views_of)
+        (entry,) = views.iterdir()
+        code = proc.wait(timeout=240)
+        assert code == 0, log.read_text()[-3000:]
+        finished = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in entry.rglob("*")}
+        ticks = {pid: _cpu_ticks(pid) for pid in workers}
+        for pid in workers:  # their raylet stays frozen, so nothing tells them that their node is gone
+            os.kill(pid, signal.SIGCONT)
+        time.sleep(5)
+        assert all(_cpu_ticks(pid) > ticks[pid] for pid in workers), "the thawed workers ran"
+        after = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in entry.rglob("*")}
+    finally:
+        proc.kill()  # ended already, unless an assertion above failed
+        cluster.hosts.kill_tree(cluster.node)
+        cluster.node.wait()
+        cluster.start_node()  # for the tests after this one
+    assert after == finished, sorted(set(after.items()) ^ set(finished.items()))[:5]
+    _same_exrs(serial, views, 60)
+
+
+def _writers(views: Path) -> dict[int, int]:
+    """The Ray workers writing into the dataset entry under ``views``, by process id (from the names
+    of their journals, ``journal-<host>-<pid>-<random>.jsonl``), and the views each has finished (of
+    the 20 of a task)."""
+    found = {}
+    for journal in views.glob("*/journal-*.jsonl"):
+        with contextlib.suppress(OSError):
+            found[int(journal.stem.rsplit("-", 2)[1])] = journal.read_text().count(".exr")
+    return found
+
+
+def _cpu_ticks(pid: int) -> int:
+    """The CPU time ``pid`` has used so far, in clock ticks (user and system)."""
+    with contextlib.suppress(OSError):
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])
+    return 0
