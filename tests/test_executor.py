@@ -83,6 +83,37 @@ def test_a_command_joins_one_cluster_for_all_its_work():
     assert not ray.is_initialized()
 
 
+KEEPALIVE = """if True:
+    import json
+    from pipeline.executor import connected
+    with connected("ray"):
+        from ray._raylet import Config
+        print(json.dumps([Config.grpc_client_keepalive_time_ms(), Config.grpc_client_keepalive_timeout_ms()]))
+"""
+
+
+@pytest.mark.slow
+def test_a_driver_pings_its_ray_connections_every_minute_unless_told_otherwise():
+    """Ray reads its settings once, when imported: the driver's keepalive (a hung node's tasks found
+    lost in about 80 s, not Ray's 7 minutes) is set before that, and a user's own setting wins."""
+    pytest.importorskip("ray")
+    import os
+    import subprocess
+    import sys
+
+    from pipeline.executor import RAY_KEEPALIVE
+    from tests.conftest import ROOT
+
+    def seen(**env: str) -> list[int]:
+        clean = {k: v for k, v in os.environ.items() if k not in RAY_KEEPALIVE}
+        done = subprocess.run([sys.executable, "-c", KEEPALIVE], cwd=ROOT, env={**clean, **env}, check=True,
+                              capture_output=True, text=True, timeout=120)
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    assert seen() == [60000, 20000]
+    assert seen(RAY_grpc_client_keepalive_time_ms="90000") == [90000, 20000]
+
+
 @pytest.mark.slow
 def test_a_failed_ray_task_is_the_stages_one_line_error(tiny_dam, capsys):
     """A task's own error reaches the stage as a local run's would (the corrupt frame named, in one
