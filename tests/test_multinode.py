@@ -30,6 +30,10 @@ pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
 RAY_START = [str(BIN / "ray"), "start", "--block", "--disable-usage-stats"]
 ENV = {"PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "RAY_USAGE_STATS_ENABLED": "0", "DEEP_SSFR_DEVICE": "cpu"}
+KEEPALIVE = {"RAY_grpc_client_keepalive_time_ms": "10000"}
+"""The cluster's nodes and drivers ping every 10 s, so that its nodes accept a driver's pings that
+often (the product's 60 s, ``executor.RAY_KEEPALIVE``, is the most often that nodes started with
+Ray's defaults accept); the answer's wait stays Ray's 120 s, so that a cut link does not end them."""
 
 
 def _free_port(host: str) -> int:
@@ -97,19 +101,29 @@ def hosts():
         yield h
 
 
+@pytest.fixture
+def cluster(ray_cluster):
+    """The module's cluster, its second node started again if it has ended (Ray drops a node cut off
+    for longer than its health checks allow, as the cut-off training test's link can be)."""
+    if ray_cluster.node is not None and ray_cluster.node.poll() is not None:
+        ray_cluster.start_node()
+    return ray_cluster
+
+
 @pytest.fixture(scope="module")
-def cluster(hosts):
+def ray_cluster(hosts):
     """``ray start --head`` here (1 CPU) and ``ray start --address`` there (2 CPUs), each blocking in
     its own process group and folder, with a Ray temp folder of its own (short: Ray's sockets live
     there). Ray 2.60 turns token authentication on for a cluster wherever ``~/.ray/auth_token``
     exists (a local ``ray.init`` writes one) and a driver joining by address sends a token only
     under ``RAY_AUTH_MODE=token``, read when Ray is imported: the nodes and every driver here share
-    a token of their own (docs/scaling.md), and the drivers are processes of their own."""
+    a token of their own (docs/scaling.md), and the drivers are processes of their own. All ping their
+    connections every 10 s (:data:`KEEPALIVE`)."""
     pytest.importorskip("ray")
     folder = Path(tempfile.mkdtemp(prefix="ssfr-ray-", dir="/tmp"))
     port = _free_port(hosts.here_ip)
     address = f"{hosts.here_ip}:{port}"
-    env = {**ENV, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
+    env = {**ENV, **KEEPALIVE, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
     (folder / "head_cwd").mkdir()
     hosts.start([*RAY_START, "--head", "--node-ip-address", hosts.here_ip, "--port", str(port), "--num-cpus", "1",
                  "--temp-dir", str(folder / "head"), "--include-dashboard", "false"], there=False, env=env,
@@ -486,17 +500,19 @@ def _wait_for_views(views: Path, count: int, proc: subprocess.Popen) -> None:
 def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster, tiny_dam, tmp_path):
     """The second node frozen (SIGSTOP of its raylet and workers: a hung machine, or one cut off with
     its storage still mounted, where no connection closes) while its two tasks write: the driver's
-    keepalive (``executor.RAY_KEEPALIVE``, not Ray's 7 minutes) finds their connections dead, Ray
-    runs the tasks again on the head, and the command ends whole. The node's workers, thawed once
-    the run has finished and their raylet still frozen, go on with their views, and the finished
-    entry gets none of their writes: no file rewritten, no journal, no temporary."""
+    keepalive (here 10 s and 5 s; ``executor.RAY_KEEPALIVE`` by default, not Ray's 7 minutes)
+    finds their connections dead, Ray runs the tasks again on the head, and the command ends whole.
+    The node's workers, thawed once the run has finished and their raylet still frozen, go on with
+    their views, and the finished entry gets none of their writes: no file rewritten, no journal, no
+    temporary."""
     import signal
 
     serial, sharded, views = _sixty_views(cluster, tiny_dam, tmp_path)
     log = tmp_path / "driver.log"
     with open(log, "w") as out:
         proc = subprocess.Popen([str(BIN / "deep-ssfr"), "dataset", "--config", str(sharded)], cwd=ROOT,
-                                env={**os.environ, **cluster.env}, stdout=out, stderr=subprocess.STDOUT)
+                                env={**os.environ, **cluster.env, "RAY_grpc_client_keepalive_timeout_ms": "5000"},
+                                stdout=out, stderr=subprocess.STDOUT)
     assert cluster.node is not None
     try:
         deadline = time.monotonic() + 120
