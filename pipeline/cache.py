@@ -193,6 +193,14 @@ def _process_tag() -> str:
     return f"{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(4)}"
 
 
+def _close(folder: Path) -> None:
+    """Stop writing into the open entry at ``folder``: no more journal records, and, where this
+    process began it, its run token removed, so that its workers write nothing more there."""
+    state = _OPEN_ENTRIES.pop(folder, None)
+    if state is not None and state.owner:
+        (folder / RUN_TOKEN).unlink(missing_ok=True)
+
+
 def open_entries() -> list[tuple[Path, str]]:
     """The folders of the entries this process has begun and not finished, with their run tokens
     (for :func:`journal_into` in the workers it starts)."""
@@ -365,9 +373,8 @@ class CacheEntry:
             self.building = self.final_dir.with_name(f"{self.final_dir.name}.new-{os.getpid()}")
         self.dir.mkdir(parents=True, exist_ok=True)
         token = secrets.token_hex(8)  # from now on a worker of an earlier, killed run writes nothing here
-        tmp = self.dir / f"{RUN_TOKEN}{_TMP_MARK}{os.getpid()}"
-        tmp.write_text(token)
-        os.replace(tmp, self.dir / RUN_TOKEN)
+        with atomic_path(self.dir / RUN_TOKEN) as tmp:
+            tmp.write_text(token)
         self._drop_temporaries()
         if journals := _journals(self.dir):
             records: dict[str, dict] = {}
@@ -407,9 +414,7 @@ class CacheEntry:
     def release(self) -> None:
         """Give up the entry's lock (``finish`` does; a stage that stops early may): the files this
         process writes there from now on are no longer journaled, and its workers' are refused."""
-        state = _OPEN_ENTRIES.pop(self.dir.resolve(), None)
-        if state is not None and state.owner:
-            (self.dir / RUN_TOKEN).unlink(missing_ok=True)
+        _close(self.dir.resolve())
         if self.held is not None:
             self.held.release(force=True)
             _HELD.discard(self.held)
@@ -440,7 +445,7 @@ class CacheEntry:
 
     def finish(self, files: list[str], timings: dict | None = None, **extra: Any) -> None:
         """Write the manifest last: config, inputs, code version, timings and files."""
-        (self.dir / RUN_TOKEN).unlink(missing_ok=True)  # the run's workers write nothing more here
+        _close(self.dir.resolve())  # first: the run's workers write nothing more here
         payload = {
             "stage": self.stage,
             "name": self.name,
@@ -453,7 +458,6 @@ class CacheEntry:
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
             **extra,
         }
-        _OPEN_ENTRIES.pop(self.dir.resolve(), None)
         write_json_atomic(self.dir / MANIFEST, payload)
         for journal in _journals(self.dir):
             journal.unlink()
@@ -471,8 +475,7 @@ class CacheEntry:
 def release_all() -> None:
     """Give up every entry lock this process holds (a stage that failed half way holds its own)."""
     for folder in [f for f, state in _OPEN_ENTRIES.items() if state.owner]:
-        _OPEN_ENTRIES.pop(folder)
-        (folder / RUN_TOKEN).unlink(missing_ok=True)
+        _close(folder)
     for lock in list(_HELD):
         lock.release(force=True)
     _HELD.clear()

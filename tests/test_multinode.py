@@ -16,6 +16,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -492,9 +493,14 @@ def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path
 
 def _wait_for_views(views: Path, count: int, proc: subprocess.Popen) -> None:
     """Until ``count`` views are written under ``views`` (or the run has ended)."""
+    _wait_until(lambda: len(list(views.glob("*/*/frame_*.exr"))) >= count, proc)
+
+
+def _wait_until(done: Callable[[], bool], proc: subprocess.Popen, poll: float = 0.02) -> None:
+    """Until ``done()`` (or the run ``proc`` has ended, or two minutes have passed)."""
     deadline = time.monotonic() + 120
-    while len(list(views.glob("*/*/frame_*.exr"))) < count and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
+    while not done() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(poll)
 
 
 def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster, tiny_dam, tmp_path):
@@ -515,10 +521,9 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
                                 stdout=out, stderr=subprocess.STDOUT)
     assert cluster.node is not None
     try:
-        deadline = time.monotonic() + 120
-        while (len(_writers(views).keys() & set(cluster.hosts.tree(cluster.node))) < 2 and proc.poll() is None
-               and time.monotonic() < deadline):
-            time.sleep(0.05)  # until both of the node's tasks have written a view
+        node = cluster.node
+        _wait_until(lambda: len(_writers(views).keys() & set(cluster.hosts.tree(node))) >= 2, proc,
+                    poll=0.05)  # until both of the node's tasks have written a view
         frozen = cluster.hosts.signal_tree(cluster.node, signal.SIGSTOP)
         views_of = {pid: n for pid, n in _writers(views).items() if pid in frozen}
         assert len(views_of) == 2 and max(views_of.values()) < 20, f"{views_of}: the node's two tasks must be writing"
