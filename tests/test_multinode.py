@@ -69,8 +69,9 @@ class Cluster:
 
     def start_node(self) -> None:
         """``ray start --address`` on the second host (2 CPUs, a folder and Ray temp folder of its own
-        each time: a killed node's stay behind), and wait until the cluster counts two live nodes (a
-        killed node that hung first counts until Ray's health checks find it dead)."""
+        each time: a killed node's stay behind), and wait until the cluster counts two live nodes, this
+        one among them: a killed node counts as live until Ray's health checks find it dead, so a count
+        of two alone can be the head and the old node, before this one has joined."""
         self.starts += 1
         name = f"node{self.starts}"
         (self.folder / f"{name}_cwd").mkdir()
@@ -78,14 +79,18 @@ class Cluster:
             [*RAY_START, "--address", self.address, "--node-ip-address", self.hosts.there_ip, "--num-cpus", "2",
              "--temp-dir", str(self.folder / name)], there=True, env=self.env, cwd=self.folder / f"{name}_cwd",
             log=self.folder / f"{name}.log")
-        alive = self.drive("""if True:
-            import time, ray
+        joined = self.drive(f"""if True:
+            import json, time, ray
             ray.init(configure_logging=False, log_to_driver=False)
-            deadline = time.monotonic() + 90  # a hung node before it is found dead: Ray's health checks
-            while sum(n["Alive"] for n in ray.nodes()) != 2 and time.monotonic() < deadline:
+            def joined():  # this node (its raylet's socket lies in its own temp folder) and the head alone
+                alive = [n for n in ray.nodes() if n["Alive"]]
+                return len(alive) == 2 and any(n["RayletSocketName"].startswith({str(self.folder / name)!r})
+                                               for n in alive)
+            deadline = time.monotonic() + 90  # a killed node before it is found dead: Ray's health checks
+            while not joined() and time.monotonic() < deadline:
                 time.sleep(0.2)
-            print(sum(n["Alive"] for n in ray.nodes()))""")
-        assert alive == 2, (self.folder / f"{name}.log").read_text()[-2000:]
+            print(json.dumps(joined()))""")
+        assert joined is True, (self.folder / f"{name}.log").read_text()[-2000:]
 
     def drive(self, code: str) -> object:
         """Run ``code`` as a driver program here (a fresh process, as a user's would be) and return what
@@ -526,7 +531,9 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
                     poll=0.05)  # until both of the node's tasks have written a view
         frozen = cluster.hosts.signal_tree(cluster.node, signal.SIGSTOP)
         views_of = {pid: n for pid, n in _writers(views).items() if pid in frozen}
-        assert len(views_of) == 2 and max(views_of.values()) < 20, f"{views_of}: the node's two tasks must be writing"
+        assert len(views_of) == 2 and max(views_of.values()) < 20, (
+            f"{views_of} of {_writers(views)}: the node's two tasks must be writing (the run: {proc.poll()})\n"
+            + log.read_text()[-3000:])
         workers = list(views_of)
         (entry,) = views.iterdir()
         code = proc.wait(timeout=240)
