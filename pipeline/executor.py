@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
@@ -124,18 +125,21 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
                  have.get("CPU", 0), gpus)
         entries = cache.open_entries()
 
-        def journaled(task: T) -> R:  # a function, not a partial: ray.remote takes only functions
-            return _journaled(fn, entries, task)
+        def journaled(task: T) -> tuple[str, R]:  # a function, not a partial: ray.remote takes only functions
+            return ray.util.get_node_ip_address(), _journaled(fn, entries, task)
 
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(journaled) if _is_cuda(device) else ray.remote(journaled)
         pending = [remote.remote(t) for t in tasks]
         order = {ref: k for k, ref in enumerate(pending)}
         results: list[Any] = [None] * len(tasks)
+        ran_on: Counter[str] = Counter()
         with tqdm(total=len(tasks), desc="ray tasks", unit="task", leave=False) as bar:
             while pending:  # as they finish, so that the bar moves and a failed task stops the run early
                 done, pending = ray.wait(pending, num_returns=1)
-                results[order[done[0]]] = _result(ray, done[0], where)
+                node, results[order[done[0]]] = _result(ray, done[0], where)
+                ran_on[node] += 1
                 bar.update()
+        log.info("ray: the tasks ran on %s", ", ".join(f"{node} ({n})" for node, n in sorted(ran_on.items())))
         return results
 
 

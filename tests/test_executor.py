@@ -63,10 +63,11 @@ def evaluation_metrics(root):
 
 
 @pytest.mark.slow
-def test_a_command_joins_one_cluster_for_all_its_work():
+def test_a_command_joins_one_cluster_for_all_its_work(caplog):
     """Inside ``cluster_scope`` (every command's) the calls share the cluster the first one started;
-    outside one, each call leaves nothing running."""
+    outside one, each call leaves nothing running. Each call logs the nodes its tasks ran on."""
     ray = pytest.importorskip("ray")
+    caplog.set_level("INFO")
     from pipeline.executor import cluster_scope
 
     def _job(_):  # defined here: a test module's functions travel by value only when nested
@@ -77,6 +78,7 @@ def test_a_command_joins_one_cluster_for_all_its_work():
     with cluster_scope():
         first = run_tasks(_job, [0, 1], "ray")
         assert ray.is_initialized()
+        assert f"ray: the tasks ran on {ray.util.get_node_ip_address()} (2)" in caplog.text
         assert run_tasks(_job, [0], "ray")[0] == first[0] == first[1]
     assert not ray.is_initialized()
     run_tasks(_job, [0], "ray")
