@@ -38,7 +38,7 @@ RAY_KEEPALIVE = {"RAY_grpc_client_keepalive_time_ms": "60000", "RAY_grpc_client_
 """The driver's gRPC keepalive, set (unless the environment sets it) before Ray is imported, which
 reads it then. A node that hangs, or is cut off with no connection closed, leaves the driver
 waiting on its tasks until a keepalive ping goes unanswered: 7 minutes with Ray's defaults (300 s,
-then 120 s for the answer), about 80 s with these, after which Ray runs the tasks again elsewhere.
+then 120 s for the answer), about 100 s with these (measured), after which Ray runs the tasks again elsewhere.
 Ray's servers refuse pings more often than once a minute (``too_many_pings``)."""
 
 
@@ -126,7 +126,7 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
         entries = cache.open_entries()
 
         def journaled(task: T) -> tuple[str, R]:  # a function, not a partial: ray.remote takes only functions
-            return ray.util.get_node_ip_address(), _journaled(fn, entries, task)
+            return _journaled(fn, entries, task)
 
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(journaled) if _is_cuda(device) else ray.remote(journaled)
         pending = [remote.remote(t) for t in tasks]
@@ -189,12 +189,15 @@ def cluster_slots(executor: str, device: str = "cpu", address: str = "") -> int:
     return os.cpu_count() or 1
 
 
-def _journaled(fn: Callable[[T], R], entries: list[tuple[Any, str]], task: T) -> R:
-    """``fn(task)`` in a Ray worker, its finished files inside the driver's open cache entries
-    journaled there (:func:`pipeline.cache.journal_into`), so a resume after a kill checks them, and
-    refused once the driver's run no longer holds them (a worker on a cut-off node that outlives it)."""
+def _journaled(fn: Callable[[T], R], entries: list[tuple[Any, str]], task: T) -> tuple[str, R]:
+    """``fn(task)`` in a Ray worker, with the address of the node it ran on; its finished files
+    inside the driver's open cache entries journaled there (:func:`pipeline.cache.journal_into`), so
+    a resume after a kill checks them, and refused once the driver's run no longer holds them (a
+    worker on a cut-off node that outlives it)."""
+    import ray
+
     with cache.journal_into(entries):
-        return fn(task)
+        return ray.util.get_node_ip_address(), fn(task)
 
 
 def _worker_env() -> dict[str, Any]:

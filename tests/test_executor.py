@@ -97,7 +97,7 @@ KEEPALIVE = """if True:
 @pytest.mark.slow
 def test_a_driver_pings_its_ray_connections_every_minute_unless_told_otherwise():
     """Ray reads its settings once, when imported: the driver's keepalive (a hung node's tasks found
-    lost in about 80 s, not Ray's 7 minutes) is set before that, and a user's own setting wins."""
+    lost in about 100 s, not Ray's 7 minutes) is set before that, and a user's own setting wins."""
     pytest.importorskip("ray")
     import os
     import subprocess

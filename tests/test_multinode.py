@@ -468,14 +468,21 @@ def test_a_node_killed_while_its_tasks_write_leaves_them_to_the_other_node(clust
         assert written < 40, f"{written} views: a task of the node's must still be writing when it dies"
         code = proc.wait(timeout=240)
     finally:
-        proc.kill()  # ended already, unless an assertion above failed
-        cluster.hosts.kill_tree(cluster.node)
-        cluster.node.wait()
-        cluster.start_node()  # for the tests after this one
+        _restart_node(cluster, proc)
     assert code == 0, log.read_text()[-3000:]
     assert "ray: 3 tasks" in log.read_text()
     _same_exrs(serial, views, 60)
     assert not list(views.rglob("*.tmp-*")) and not list(views.rglob("journal*.jsonl"))
+
+
+def _restart_node(cluster: Cluster, proc: subprocess.Popen) -> None:
+    """End the run ``proc`` (ended already, unless an assertion failed) and the second node, then
+    start the node again for the tests after this one."""
+    proc.kill()
+    assert cluster.node is not None
+    cluster.hosts.kill_tree(cluster.node)
+    cluster.node.wait()
+    cluster.start_node()
 
 
 def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path, Path, Path]:
@@ -529,7 +536,7 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
         node = cluster.node
         _wait_until(lambda: len(_writers(views).keys() & set(cluster.hosts.tree(node))) >= 2, proc,
                     poll=0.05)  # until both of the node's tasks have written a view
-        frozen = cluster.hosts.signal_tree(cluster.node, signal.SIGSTOP)
+        frozen = cluster.hosts.signal_tree(node, signal.SIGSTOP)
         views_of = {pid: n for pid, n in _writers(views).items() if pid in frozen}
         assert len(views_of) == 2 and max(views_of.values()) < 20, (
             f"{views_of} of {_writers(views)}: the node's two tasks must be writing (the run: {proc.poll()})\n"
@@ -546,10 +553,7 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
         assert all(_cpu_ticks(pid) > ticks[pid] for pid in workers), "the thawed workers ran"
         after = {p: (p.stat().st_mtime_ns, p.stat().st_ino) for p in entry.rglob("*")}
     finally:
-        proc.kill()  # ended already, unless an assertion above failed
-        cluster.hosts.kill_tree(cluster.node)
-        cluster.node.wait()
-        cluster.start_node()  # for the tests after this one
+        _restart_node(cluster, proc)
     assert after == finished, sorted(set(after.items()) ^ set(finished.items()))[:5]
     _same_exrs(serial, views, 60)
 
