@@ -1,0 +1,86 @@
+"""The GPU check's script, read here: a lent GPU comes rarely and for minutes, so a step that would
+fail on it for a renamed flag, or calls whose steps outgrow their time limits, are found on the CPU."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import runpy
+import shlex
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import ROOT
+
+CHECK = ROOT / "benchmarks" / "gpu_check.sh"
+STAGE = ROOT / "benchmarks" / "gpu_stage.sh"
+FIGURES_CALL_S = 590
+"""The timeout of the call that runs the issue's figures (gpu_stage.sh prints it)."""
+BREAKDOWNS_CALL_S = 180
+BOOT_S = 60
+"""What the figures' call spends before its first step at most: unpacking the staged packages (144 MB
+of xz, once: the next call finds them unpacked)."""
+
+
+def _steps() -> dict[str, tuple[int, list[str]]]:
+    """Each ``step NAME LIMIT COMMAND...`` of gpu_check.sh: its limit and its command's words, with
+    the script's variables filled in."""
+    text = CHECK.read_text().replace("\\\n", " ")
+    values = {"$PY": "python", "$DEVICE": "cuda", "$TRACES": "/tmp/traces"}
+    steps = {}
+    for match in re.finditer(r"^\s*step (\S+) (\d+) (.+)$", text, re.MULTILINE):
+        words = shlex.split(match.group(3))
+        steps[match.group(1)] = (int(match.group(2)), [values.get(w, w) for w in words])
+    return steps
+
+
+def _figures() -> list[str]:
+    return re.search(r'^FIGURES="([^"]+)"', STAGE.read_text(), re.MULTILINE).group(1).split()
+
+
+class _Parsed(Exception):
+    """Raised in place of a benchmark's run once its arguments parsed."""
+
+
+def test_the_calls_steps_fit_their_time_limits():
+    steps = _steps()
+    figures = _figures()
+    breakdowns = [name for name in steps if name not in figures]
+    assert set(figures) <= set(steps), f"gpu_stage.sh names steps gpu_check.sh lacks: {set(figures) - set(steps)}"
+    assert breakdowns == ["render", "dataset"], breakdowns  # the second call: gpu_check.sh render dataset
+    assert BOOT_S + sum(steps[n][0] for n in figures) <= FIGURES_CALL_S
+    assert sum(steps[n][0] for n in breakdowns) <= BREAKDOWNS_CALL_S  # unpacked by the call before
+    printed = STAGE.read_text()  # the calls gpu_stage.sh prints carry these timeouts
+    assert f"timeout_s: {FIGURES_CALL_S}" in printed and f"timeout_s: {BREAKDOWNS_CALL_S}" in printed
+
+
+@pytest.mark.parametrize("name", [n for n, (_, words) in _steps().items()
+                                  if any(w.startswith("benchmarks/") for w in words)])
+def test_every_benchmark_step_parses_its_arguments(name, monkeypatch):
+    words = _steps()[name][1]
+    script = next(k for k, w in enumerate(words) if w.startswith("benchmarks/"))
+    path, args = ROOT / words[script], words[script + 1:]
+    parse = argparse.ArgumentParser.parse_args
+
+    def parse_then_stop(self, *a, **k):
+        parse(self, *a, **k)  # a wrong flag or value exits here with argparse's message
+        raise _Parsed
+
+    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
+    monkeypatch.setattr(sys, "argv", [str(path), *args])
+    monkeypatch.setattr(sys, "path", [str(path.parent), *sys.path])  # as `python benchmarks/X.py` has it
+    with pytest.raises(_Parsed):
+        runpy.run_path(str(path), run_name="__main__")
+
+
+def test_the_cuda_step_selects_the_cuda_tests_the_readme_counts():
+    words = _steps()["cuda_tests"][1]
+    assert words[:3] == ["python", "-m", "pytest"] and words[words.index("-m", 3) + 1] == "cuda"
+    said = re.search(r"`pytest -m cuda` runs the (\d+) tests", (ROOT / "README.md").read_text())
+    out = subprocess.run([sys.executable, *words[1:], "--collect-only"], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    collected = re.search(r"^(\d+)/\d+ tests collected", out.stdout, re.MULTILINE)
+    assert collected, out.stdout[-2000:] + out.stderr[-2000:]
+    assert said and int(said.group(1)) == int(collected.group(1)), (said and said.group(1), collected.group(1))
