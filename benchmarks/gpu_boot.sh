@@ -6,7 +6,7 @@
 #                                        checks them, unpacks Python 3.12's Warp, Taichi, OpenEXR,
 #                                        trimesh, pydantic and meshio into /tmp/gpu/site (once), and
 #                                        exports PYTHONPATH, DEEP_SSFR_DEVICE=cuda, PYTHONUNBUFFERED
-G=/tmp/gpu
+G=${GPU_BOOT_DIR:-/tmp/gpu}  # where the pieces and the unpacked site stay while the machine is warm
 mkdir -p "$G/pieces"
 for d in .gpu/p*; do
     [ -d "$d" ] && cp "$d"/piece_* "$d"/SHA256SUMS "$G/pieces/"

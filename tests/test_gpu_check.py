@@ -4,11 +4,15 @@ fail on it for a renamed flag, or calls whose steps outgrow their time limits, a
 from __future__ import annotations
 
 import argparse
+import hashlib
+import os
 import re
 import runpy
 import shlex
+import shutil
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -84,3 +88,71 @@ def test_the_cuda_step_selects_the_cuda_tests_the_readme_counts():
     collected = re.search(r"^(\d+)/\d+ tests collected", out.stdout, re.MULTILINE)
     assert collected, out.stdout[-2000:] + out.stderr[-2000:]
     assert said and int(said.group(1)) == int(collected.group(1)), (said and said.group(1), collected.group(1))
+
+
+def _pieces(folder, count: int = 3) -> bytes:
+    """A packed site in ``count`` pieces laid out as gpu_stage.sh lays them out (``.gpu/pK/piece_K`` and
+    one SHA256SUMS in each), holding Warp's library and a module; returns the library's bytes."""
+    site = folder / "site"
+    (site / "warp" / "bin").mkdir(parents=True)
+    library = bytes(range(256)) * 400
+    (site / "warp" / "bin" / "warp.so").write_bytes(library)
+    (site / "staged_probe.py").write_text("WHERE = __file__\n")
+    bundle = folder / "bundle.tar.xz"
+    subprocess.run(f"tar -C {site} -cf - . | xz -0 > {bundle}", shell=True, check=True)
+    data = bundle.read_bytes()
+    cuts = [len(data) * k // count for k in range(count + 1)]
+    sums = []
+    for k in range(1, count + 1):
+        piece = data[cuts[k - 1]:cuts[k]]
+        (folder / "pieces" / f"p{k}").mkdir(parents=True)
+        (folder / "pieces" / f"p{k}" / f"piece_{k}").write_bytes(piece)
+        sums.append(f"{hashlib.sha256(piece).hexdigest()}  piece_{k}\n")
+    for k in range(1, count + 1):
+        (folder / "pieces" / f"p{k}" / "SHA256SUMS").write_text("".join(sums))
+    return library
+
+
+def _call(folder, piece: int | None, command: str, boot) -> subprocess.CompletedProcess:
+    """One device call as the tool makes it: a fresh tree (here a folder) that holds only the piece it
+    carries, run from that tree's root, with the machine's /tmp (``boot``) kept between calls."""
+    tree = folder / f"tree_{time.monotonic_ns()}"
+    (tree / ".gpu").mkdir(parents=True)
+    if piece is not None:
+        shutil.copytree(folder / "pieces" / f"p{piece}", tree / ".gpu" / f"p{piece}")
+    env = {**os.environ, "GPU_BOOT_DIR": str(boot), "BOOT": str(ROOT / "benchmarks" / "gpu_boot.sh")}
+    env.pop("PYTHONPATH", None)
+    return subprocess.run(["bash", "-c", command], cwd=tree, env=env, capture_output=True, text=True, timeout=60)
+
+
+def test_the_pieces_parked_one_a_call_unpack_on_the_last(tmp_path):
+    library = _pieces(tmp_path)
+    boot = tmp_path / "machine_tmp"
+    for k in (1, 2):
+        parked = _call(tmp_path, k, 'bash "$BOOT" park', boot)
+        assert parked.returncode == 0 and f"kept {k} piece(s)" in parked.stdout, parked.stdout + parked.stderr
+    probe = 'source "$BOOT" && python3 -c "import staged_probe; print(staged_probe.WHERE)" && echo "$DEEP_SSFR_DEVICE"'
+    last = _call(tmp_path, 3, probe, boot)
+    assert last.returncode == 0, last.stdout + last.stderr
+    assert "unpacked 3 pieces" in last.stdout and last.stdout.split()[-2:] == [
+        str(boot / "site" / "staged_probe.py"), "cuda"]
+    assert (boot / "site" / "warp" / "bin" / "warp.so").read_bytes() == library
+    again = _call(tmp_path, None, probe, boot)  # the breakdowns' call carries nothing: the site stays
+    assert again.returncode == 0 and "unpacked" not in again.stdout, again.stdout + again.stderr
+
+
+def test_a_missed_or_damaged_piece_stops_the_boot_with_what_to_do(tmp_path):
+    _pieces(tmp_path)
+    missed = tmp_path / "missed"
+    _call(tmp_path, 1, 'bash "$BOOT" park', missed)
+    out = _call(tmp_path, 3, 'source "$BOOT" && echo booted', missed)
+    assert out.returncode != 0 and "booted" not in out.stdout
+    assert "2 of 3 pieces are here" in out.stderr and "park them again" in out.stderr, out.stderr
+    damaged = tmp_path / "damaged"
+    piece = tmp_path / "pieces" / "p2" / "piece_2"
+    piece.write_bytes(b"x" + piece.read_bytes()[1:])
+    for k in (1, 2):
+        _call(tmp_path, k, 'bash "$BOOT" park', damaged)
+    out = _call(tmp_path, 3, 'source "$BOOT" && echo booted', damaged)
+    assert out.returncode != 0 and "booted" not in out.stdout and "a piece is damaged" in out.stderr, out.stderr
+    assert not (damaged / "site").exists()
