@@ -45,7 +45,7 @@ step() {  # step NAME SECONDS COMMAND...: run with a time limit, keep its output
     local start=$SECONDS
     timeout "$limit" "$@" >"$WORK/$name.txt" 2>&1
     local rc=$?
-    printf '%-18s exit %3d  %4d s  %s\n' "$name" "$rc" $((SECONDS - start)) "$(tail -n 1 "$WORK/$name.txt")" \
+    printf '%-18s exit %3d  %4d s  %s\n' "$name" "$rc" $((SECONDS - start)) "$(tail -n 1 "$WORK/$name.txt" | tr "\r" "\n" | tail -n 1)" \
         | tee -a "$OUT/summary.txt"
     tar -czf "$OUT/.gpu_check.tgz.tmp" -C "$WORK" . && mv "$OUT/.gpu_check.tgz.tmp" "$OUT/gpu_check.tgz"
 }
