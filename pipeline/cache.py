@@ -224,24 +224,42 @@ def journal_into(entries: list[tuple[Path, str]]) -> Iterator[None]:
             _OPEN_ENTRIES.pop(folder, None)
 
 
+def _staging(folder: Path) -> Path:
+    """Where the writes into the open entry at ``folder`` keep their temporaries until the rename:
+    beside the stage folders (``<root>/.staging/<stage>/<entry>/``), on the entry's file system but
+    outside every entry, so a write that is refused or cut short leaves the entry as it was."""
+    return folder.parent.parent / ".staging" / folder.parent.name / folder.name
+
+
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
-    """Yield a temporary sibling path; on success rename it over ``target``, else delete it. Inside
-    an entry another process opened, the write is refused (:class:`StaleWrite`) once that run no
-    longer holds it, checked before the folder is made (a finished forced run's is gone) and again
-    before the rename."""
+    """Yield a temporary path; on success rename it over ``target``, else delete it. Outside an
+    open entry the temporary is a sibling; inside one it is staged outside the entry (a frozen
+    worker thawed after its run finished, found in CI, wrote its temporary into the finished entry,
+    and only then was refused). Inside an entry another process opened, the write is refused
+    (:class:`StaleWrite`) once that run no longer holds it, checked before the write and again
+    before the rename, and the target's folder is made only after the second check."""
     target = Path(target)
     held = _holder(target)
     _fence(held, target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}")
+    if held is None:
+        home, name = target.parent, target.name
+    else:  # the path inside the entry in the name, so that two targets of one name stay apart
+        home, name = _staging(held[0]), "%".join(target.resolve().relative_to(held[0]).parts)
+    home.mkdir(parents=True, exist_ok=True)
+    tmp = home / f".{name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}"
     try:
         yield tmp
         _fence(held, target)
+        target.parent.mkdir(parents=True, exist_ok=True)
         os.replace(tmp, target)
         _journal(held, target)
         log.debug("wrote %s", target)  # one event per finished file (tests kill runs on them)
     except OSError as exc:
+        try:  # a write whose run finished meanwhile, its staged temporaries dropped, is refused
+            _fence(held, target)
+        except StaleWrite as stale:
+            raise stale from exc
         if exc.filename is None:  # a writer that does not say which file: this one
             raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from exc
         raise
@@ -421,8 +439,10 @@ class CacheEntry:
             self.held = None
 
     def _drop_temporaries(self) -> None:
-        """Delete the folder's temporary files: a killed run's or worker's, never a live one's, since
-        the caller holds the entry's lock and no write of its own is under way."""
+        """Delete the entry's temporary files, staged (:func:`_staging`) and in the folder: a killed
+        run's or worker's, never a live one's, since the caller holds the entry's lock and no write
+        of its own is under way."""
+        shutil.rmtree(_staging(self.dir.resolve()), ignore_errors=True)
         for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
             stale.unlink(missing_ok=True)
 

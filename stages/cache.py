@@ -31,4 +31,5 @@ def main(opts: StageOptions, action: str) -> None:
         return
     for stage in {r["stage"] for r in rows}:
         shutil.rmtree(root / stage)
+    shutil.rmtree(root / ".staging", ignore_errors=True)  # temporaries of writes cut short, if any
     print(f"removed {len(rows)} entries from {root}")

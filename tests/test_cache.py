@@ -110,7 +110,7 @@ def test_sigkill_half_way_then_resume_equals_clean_run(tiny_dam, tmp_path):
     assert 15 <= len(done) < 60 and not (entry / "manifest.json").exists()
     assert subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True).returncode == 0
     assert (entry / "manifest.json").exists()
-    assert not [p for p in entry.iterdir() if ".tmp-" in p.name]
+    assert not list(data.parent.rglob("*.tmp-*"))  # in the entry or staged beside it
 
     clean = tmp_path / "clean"
     clean.mkdir()
@@ -205,11 +205,14 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_in_the_finished_entry(tmp
     ((folder, token),) = cache.open_entries()
     killed = subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(folder), token], cwd=ROOT)
     assert killed.returncode == -9
-    assert [p.name for p in entry.dir.glob(".half.bin.tmp-*")], "the killed write left its temporary"
+    staged = tmp_path / ".staging" / "dataset" / folder.name
+    assert [p.name for p in staged.glob(".half.bin.tmp-*")], "the killed write left its temporary"
+    assert [p.name for p in entry.dir.iterdir()] == [".run-token"], "the temporary was staged outside the entry"
     with cache.atomic_path(entry.path("half.bin")) as tmp:  # the task again, on another node
         tmp.write_bytes(b"h" * 10)
     entry.finish(["half.bin"])
     assert sorted(p.name for p in entry.dir.iterdir()) == ["half.bin", "manifest.json"]
+    assert not staged.exists()
 
 
 LATE = """if True:
@@ -231,6 +234,43 @@ def _late_write(folder: Path, token: str) -> str:
     """A worker's write into ``folder`` under ``token``: what it printed (the refusal, or nothing)."""
     return subprocess.run([sys.executable, "-c", LATE, str(folder), token], cwd=ROOT, check=True,
                           capture_output=True, text=True).stdout.strip()
+
+
+PAUSED_MID_WRITE = """if True:
+    import sys
+    from pathlib import Path
+    from pipeline import cache
+
+    folder = Path(sys.argv[1])
+    with cache.journal_into([(folder, sys.argv[2])]):
+        try:
+            with cache.atomic_path(folder / "views" / "late.bin") as tmp:
+                print("checked", flush=True)
+                sys.stdin.readline()  # frozen here until the run has finished the entry
+                tmp.write_bytes(b"late")
+        except cache.StaleWrite as exc:
+            print(exc)
+"""
+
+
+def test_a_write_frozen_past_its_first_check_leaves_the_finished_entry_as_it_was(tmp_path):
+    """A worker frozen inside a write (past the check at its start), thawed once its run has finished
+    the entry: its temporary and its target's folder go nowhere in the entry, so the entry's
+    folders keep their contents and times, and the write is refused (found in CI: a thawed worker's
+    temporary, made and deleted in a view folder, changed that folder's time)."""
+    first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert first.begin()
+    ((folder, token),) = cache.open_entries()
+    worker = subprocess.Popen([sys.executable, "-c", PAUSED_MID_WRITE, str(folder), token], cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert worker.stdout is not None and worker.stdin is not None
+    assert worker.stdout.readline().strip() == "checked"
+    first.finish([])
+    before = {p: p.stat().st_mtime_ns for p in [folder, *folder.rglob("*")]}
+    out, _ = worker.communicate("go\n", timeout=60)
+    assert "its run has finished" in out
+    assert {p: p.stat().st_mtime_ns for p in [folder, *folder.rglob("*")]} == before
+    assert sorted(p.name for p in folder.iterdir()) == ["manifest.json"]
 
 
 def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
@@ -265,3 +305,21 @@ def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
     assert "its run has finished" in _late_write(building, token3)
     assert not building.exists(), "the late write made the swapped-in folder again"
     assert sorted(p.name for p in folder.parent.iterdir()) == [folder.name]
+
+
+def test_cache_ls_lists_entries_only_and_clean_drops_the_staged_temporaries(tiny_dam, capsys):
+    """``cache ls`` lists the stage entries, not the lock and staging folders beside them, and
+    ``cache clean`` deletes the entries and the temporaries a write cut short left staged."""
+    assert _run(tiny_dam) == 0
+    data = tiny_dam.parent / "data"
+    (entry,) = (data / "simulate").iterdir()
+    left = data / ".staging" / "simulate" / entry.name / ".frame_0001.npz.tmp-1-2"  # a write killed after its run
+    left.parent.mkdir(parents=True)
+    left.write_bytes(b"half")
+    capsys.readouterr()
+    assert cli.main(["cache", "ls", "--config", str(tiny_dam)]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert listed[0].split()[:2] == ["simulate", entry.name] and listed[0].split()[-1] == "complete"
+    assert listed[1].startswith("1 entries")
+    assert cli.main(["cache", "clean", "--config", str(tiny_dam)]) == 0
+    assert not (data / "simulate").exists() and not (data / ".staging").exists()

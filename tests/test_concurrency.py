@@ -29,7 +29,8 @@ def _whole(folder) -> None:
     manifest = read_json(folder / "manifest.json")
     for name, check in manifest["checks"].items():
         assert (folder / name).stat().st_size == check["size"], name
-    assert not [p for p in folder.rglob("*") if ".tmp-" in p.name]
+    staged = folder.parent.parent / ".staging" / folder.parent.name / folder.name
+    assert not [p for p in [*folder.rglob("*"), *staged.rglob("*")] if ".tmp-" in p.name]
 
 
 @pytest.mark.slow
