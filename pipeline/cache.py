@@ -139,8 +139,7 @@ class StaleWrite(RuntimeError):
 
 
 def _holder(target: Path) -> tuple[Path, _Open] | None:
-    """The open entry whose folder holds ``target``, if any."""
-    target = Path(target).resolve()
+    """The open entry whose folder holds ``target`` (a resolved path), if any."""
     for folder, state in list(_OPEN_ENTRIES.items()):
         if folder in target.parents:
             return folder, state
@@ -165,12 +164,12 @@ def _fence(held: tuple[Path, _Open] | None, target: Path) -> None:
 
 
 def _journal(held: tuple[Path, _Open] | None, target: Path) -> None:
-    """Append a finished file's size and hash to the journal of the open entry that holds it, so a
-    resumed run can check the files of an unfinished entry as the manifest checks a finished one."""
+    """Append a finished file's size and hash (``target``, a resolved path) to the journal of the
+    open entry that holds it, so a resumed run can check the files of an unfinished entry as the
+    manifest checks a finished one."""
     if held is None:
         return
     folder, state = held
-    target = Path(target).resolve()
     line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
                        "blake2b": file_hash(target)})
     with state.lock, open(folder / state.journal, "a") as fh:
@@ -240,12 +239,13 @@ def atomic_path(target: Path) -> Iterator[Path]:
     (:class:`StaleWrite`) once that run no longer holds it, checked before the write and again
     before the rename, and the target's folder is made only after the second check."""
     target = Path(target)
-    held = _holder(target)
+    where = target.resolve()
+    held = _holder(where)
     _fence(held, target)
     if held is None:
         home, name = target.parent, target.name
     else:  # the path inside the entry in the name, so that two targets of one name stay apart
-        home, name = _staging(held[0]), "%".join(target.resolve().relative_to(held[0]).parts)
+        home, name = _staging(held[0]), "%".join(where.relative_to(held[0]).parts)
     home.mkdir(parents=True, exist_ok=True)
     tmp = home / f".{name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}"
     try:
@@ -253,7 +253,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
         _fence(held, target)
         target.parent.mkdir(parents=True, exist_ok=True)
         os.replace(tmp, target)
-        _journal(held, target)
+        _journal(held, where)
         log.debug("wrote %s", target)  # one event per finished file (tests kill runs on them)
     except OSError as exc:
         try:  # a write whose run finished meanwhile, its staged temporaries dropped, is refused

@@ -224,6 +224,9 @@ LATE = """if True:
     with cache.journal_into([(folder, sys.argv[2])]):
         try:
             with cache.atomic_path(folder / "views" / "late.bin") as tmp:
+                if sys.argv[3:] == ["pause"]:  # frozen past the first check until told to go on
+                    print("checked", flush=True)
+                    sys.stdin.readline()
                 tmp.write_bytes(b"late")
         except cache.StaleWrite as exc:
             print(exc)
@@ -236,23 +239,6 @@ def _late_write(folder: Path, token: str) -> str:
                           capture_output=True, text=True).stdout.strip()
 
 
-PAUSED_MID_WRITE = """if True:
-    import sys
-    from pathlib import Path
-    from pipeline import cache
-
-    folder = Path(sys.argv[1])
-    with cache.journal_into([(folder, sys.argv[2])]):
-        try:
-            with cache.atomic_path(folder / "views" / "late.bin") as tmp:
-                print("checked", flush=True)
-                sys.stdin.readline()  # frozen here until the run has finished the entry
-                tmp.write_bytes(b"late")
-        except cache.StaleWrite as exc:
-            print(exc)
-"""
-
-
 def test_a_write_frozen_past_its_first_check_leaves_the_finished_entry_as_it_was(tmp_path):
     """A worker frozen inside a write (past the check at its start), thawed once its run has finished
     the entry: its temporary and its target's folder go nowhere in the entry, so the entry's
@@ -261,7 +247,7 @@ def test_a_write_frozen_past_its_first_check_leaves_the_finished_entry_as_it_was
     first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
     assert first.begin()
     ((folder, token),) = cache.open_entries()
-    worker = subprocess.Popen([sys.executable, "-c", PAUSED_MID_WRITE, str(folder), token], cwd=ROOT,
+    worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, "pause"], cwd=ROOT,
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert worker.stdout is not None and worker.stdin is not None
     assert worker.stdout.readline().strip() == "checked"
