@@ -230,6 +230,27 @@ def _staging(folder: Path) -> Path:
     return folder.parent.parent / ".staging" / folder.parent.name / folder.name
 
 
+def _place(tmp: Path, target: Path, held: tuple[Path, _Open] | None) -> None:
+    """Put a finished temporary at ``target``. A worker links it there, which never replaces a file:
+    one frozen between its last check and here, thawed as its run finishes, finds the file its task
+    run again elsewhere wrote and is refused, leaving that file as it was. Only a file already there
+    while its run still holds the entry (a frame half done before a kill) is replaced."""
+    if held is None or held[1].owner:
+        os.replace(tmp, target)
+        return
+    try:
+        os.link(tmp, target)
+    except FileExistsError:
+        _fence(held, target)
+        os.replace(tmp, target)
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP):
+            raise
+        os.replace(tmp, target)  # a file system without hard links
+    else:
+        tmp.unlink()
+
+
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary path; on success rename it over ``target``, else delete it. Outside an
@@ -237,7 +258,8 @@ def atomic_path(target: Path) -> Iterator[Path]:
     worker thawed after its run finished, found in CI, wrote its temporary into the finished entry,
     and only then was refused). Inside an entry another process opened, the write is refused
     (:class:`StaleWrite`) once that run no longer holds it, checked before the write and again
-    before the rename, and the target's folder is made only after the second check."""
+    before the file is put in place (:func:`_place`), and the target's folder is made only after
+    the second check."""
     target = Path(target)
     where = target.resolve()
     held = _holder(where)
@@ -252,7 +274,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
         yield tmp
         _fence(held, target)
         target.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(tmp, target)
+        _place(tmp, target, held)
         _journal(held, where)
         log.debug("wrote %s", target)  # one event per finished file (tests kill runs on them)
     except OSError as exc:

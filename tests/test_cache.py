@@ -221,10 +221,22 @@ LATE = """if True:
     from pipeline import cache
 
     folder = Path(sys.argv[1])
+    pause = sys.argv[3:]
+    if pause == ["pause-late"]:  # frozen past the second check, just before the rename
+        fence, checks = cache._fence, []
+
+        def _fence(*args):
+            fence(*args)
+            checks.append(args)
+            if len(checks) == 2:
+                print("checked twice", flush=True)
+                sys.stdin.readline()
+
+        cache._fence = _fence
     with cache.journal_into([(folder, sys.argv[2])]):
         try:
             with cache.atomic_path(folder / "views" / "late.bin") as tmp:
-                if sys.argv[3:] == ["pause"]:  # frozen past the first check until told to go on
+                if pause == ["pause"]:  # frozen past the first check until told to go on
                     print("checked", flush=True)
                     sys.stdin.readline()
                 tmp.write_bytes(b"late")
@@ -259,6 +271,30 @@ def test_a_write_frozen_past_its_first_check_leaves_the_finished_entry_as_it_was
     assert sorted(p.name for p in folder.iterdir()) == ["manifest.json"]
 
 
+def test_a_write_frozen_past_its_last_check_leaves_the_file_its_rerun_wrote(tmp_path):
+    """A worker frozen between its last check and its rename, thawed as its run finishes (the run's
+    token gone, its staged temporaries not yet dropped): the file its task run again elsewhere wrote
+    keeps its inode and time, and the write is refused, since a worker's write never replaces a file
+    once its run no longer holds the entry."""
+    first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert first.begin()
+    ((folder, token),) = cache.open_entries()
+    worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, "pause-late"], cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert worker.stdout is not None and worker.stdin is not None
+    assert worker.stdout.readline().strip() == "checked twice"
+    with cache.atomic_path(first.path("views/late.bin")) as tmp:  # the task again, on another node
+        tmp.write_bytes(b"late")
+    rerun = first.path("views/late.bin").stat()
+    (folder / cache.RUN_TOKEN).unlink()  # finish's first step: the run holds the entry no more
+    out, _ = worker.communicate("go\n", timeout=60)
+    assert "its run has finished" in out
+    now = first.path("views/late.bin").stat()
+    assert (now.st_ino, now.st_mtime_ns) == (rerun.st_ino, rerun.st_mtime_ns)
+    first.finish(["views/late.bin"])
+    assert not (tmp_path / ".staging" / "dataset" / folder.name).exists()
+
+
 def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
     """A Ray worker cut off from its cluster keeps running while its task runs again elsewhere: once
     its run has finished the entry, or a new run has taken over from a killed one, its writes are
@@ -271,6 +307,9 @@ def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
     ((folder, token),) = cache.open_entries()
     assert _late_write(folder, token) == "", "a worker of the live run writes"
     assert first.path("views/late.bin").read_bytes() == b"late"
+    written = first.path("views/late.bin").stat().st_ino
+    assert _late_write(folder, token) == "", "and, while its run holds the entry, replaces its file"
+    assert first.path("views/late.bin").stat().st_ino != written
     first.release()  # the driver is killed; a new run resumes the entry
     second = entry()
     assert second.begin()
