@@ -251,18 +251,25 @@ def _late_write(folder: Path, token: str) -> str:
                           capture_output=True, text=True).stdout.strip()
 
 
+def _paused_write(tmp_path: Path, pause: str) -> tuple[cache.CacheEntry, Path, subprocess.Popen]:
+    """A begun entry, its folder, and a worker paused inside its write into it (``pause``: past the
+    first check, or the second), which goes on once sent a line."""
+    first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert first.begin()
+    ((folder, token),) = cache.open_entries()
+    worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, pause], cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert worker.stdout is not None
+    assert worker.stdout.readline().strip() == {"pause": "checked", "pause-late": "checked twice"}[pause]
+    return first, folder, worker
+
+
 def test_a_write_frozen_past_its_first_check_leaves_the_finished_entry_as_it_was(tmp_path):
     """A worker frozen inside a write (past the check at its start), thawed once its run has finished
     the entry: its temporary and its target's folder go nowhere in the entry, so the entry's
     folders keep their contents and times, and the write is refused (found in CI: a thawed worker's
     temporary, made and deleted in a view folder, changed that folder's time)."""
-    first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
-    assert first.begin()
-    ((folder, token),) = cache.open_entries()
-    worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, "pause"], cwd=ROOT,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert worker.stdout is not None and worker.stdin is not None
-    assert worker.stdout.readline().strip() == "checked"
+    first, folder, worker = _paused_write(tmp_path, "pause")
     first.finish([])
     before = {p: p.stat().st_mtime_ns for p in [folder, *folder.rglob("*")]}
     out, _ = worker.communicate("go\n", timeout=60)
@@ -276,13 +283,7 @@ def test_a_write_frozen_past_its_last_check_leaves_the_file_its_rerun_wrote(tmp_
     token gone, its staged temporaries not yet dropped): the file its task run again elsewhere wrote
     keeps its inode and time, and the write is refused, since a worker's write never replaces a file
     once its run no longer holds the entry."""
-    first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
-    assert first.begin()
-    ((folder, token),) = cache.open_entries()
-    worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, "pause-late"], cwd=ROOT,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert worker.stdout is not None and worker.stdin is not None
-    assert worker.stdout.readline().strip() == "checked twice"
+    first, folder, worker = _paused_write(tmp_path, "pause-late")
     with cache.atomic_path(first.path("views/late.bin")) as tmp:  # the task again, on another node
         tmp.write_bytes(b"late")
     rerun = first.path("views/late.bin").stat()
