@@ -233,6 +233,14 @@ LATE = """if True:
                 sys.stdin.readline()
 
         cache._fence = _fence
+    if pause == ["no-links"]:  # a file system without hard links (some FUSE and SMB mounts)
+        import errno
+        import os
+
+        def _link(*args):
+            raise OSError(errno.EPERM, "Operation not permitted")
+
+        os.link = _link
     with cache.journal_into([(folder, sys.argv[2])]):
         try:
             with cache.atomic_path(folder / "views" / "late.bin") as tmp:
@@ -245,9 +253,9 @@ LATE = """if True:
 """
 
 
-def _late_write(folder: Path, token: str) -> str:
+def _late_write(folder: Path, token: str, *how: str) -> str:
     """A worker's write into ``folder`` under ``token``: what it printed (the refusal, or nothing)."""
-    return subprocess.run([sys.executable, "-c", LATE, str(folder), token], cwd=ROOT, check=True,
+    return subprocess.run([sys.executable, "-c", LATE, str(folder), token, *how], cwd=ROOT, check=True,
                           capture_output=True, text=True).stdout.strip()
 
 
@@ -311,6 +319,9 @@ def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
     written = first.path("views/late.bin").stat().st_ino
     assert _late_write(folder, token) == "", "and, while its run holds the entry, replaces its file"
     assert first.path("views/late.bin").stat().st_ino != written
+    first.path("views/late.bin").unlink()
+    assert _late_write(folder, token, "no-links") == "", "without hard links a worker renames"
+    assert first.path("views/late.bin").read_bytes() == b"late"
     first.release()  # the driver is killed; a new run resumes the entry
     second = entry()
     assert second.begin()
