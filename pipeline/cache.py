@@ -253,13 +253,12 @@ def _place(tmp: Path, target: Path, held: tuple[Path, _Open] | None) -> None:
 
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
-    """Yield a temporary path; on success rename it over ``target``, else delete it. Outside an
-    open entry the temporary is a sibling; inside one it is staged outside the entry (a frozen
-    worker thawed after its run finished, found in CI, wrote its temporary into the finished entry,
-    and only then was refused). Inside an entry another process opened, the write is refused
+    """Yield a temporary path; on success put it at ``target`` (:func:`_place`), else delete it.
+    Outside an open entry the temporary is a sibling; inside one it is staged outside the entry (a
+    frozen worker thawed after its run finished, found in CI, wrote its temporary into the finished
+    entry, and only then was refused). Inside an entry another process opened, the write is refused
     (:class:`StaleWrite`) once that run no longer holds it, checked before the write and again
-    before the file is put in place (:func:`_place`), and the target's folder is made only after
-    the second check."""
+    before the file is put in place, and the target's folder is made only after the second check."""
     target = Path(target)
     where = target.resolve()
     held = _holder(where)
