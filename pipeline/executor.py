@@ -19,6 +19,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import statistics
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
@@ -40,6 +42,26 @@ reads it then. A node that hangs, or is cut off with no connection closed, leave
 waiting on its tasks until a keepalive ping goes unanswered: 7 minutes with Ray's defaults (300 s,
 then 120 s for the answer), about 100 s with these (measured), after which Ray runs the tasks again elsewhere.
 Ray's servers refuse pings more often than once a minute (``too_many_pings``)."""
+
+
+BACKUP_FACTOR = 2.0
+"""A Ray task still running this many times the median time of the finished ones (and
+:data:`BACKUP_MIN_S` at least), while a slot of the cluster is free, gets a backup copy: a slow or
+hung node holds up the run only until the copy finishes elsewhere, rather than to the end of its
+own work or until its connections are found dead. Tasks write the same bytes wherever they run,
+so either copy's files will do. ``DEEP_SSFR_RAY_BACKUP_FACTOR`` sets it (``0``: no copies)."""
+
+BACKUP_FACTOR_ENV = "DEEP_SSFR_RAY_BACKUP_FACTOR"
+BACKUP_MIN_S = 10.0
+"""No task gets a backup copy before it has run this long: a worker's start and imports take
+seconds of their own, and short tasks cost more to copy than to wait for."""
+
+BACKUP_POLL_S = 1.0
+"""How often the driver looks for tasks to back up while it waits for them."""
+
+CANCEL_WAIT_S = 10.0
+"""How long the driver waits for a cancelled copy's worker to end before it finishes the stage's
+entry (a copy on a hung node never ends: the run token keeps its writes out)."""
 
 
 def _is_cuda(device: str) -> bool:
@@ -111,6 +133,7 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
     task holds a share of one GPU, which it sees as ``cuda:0``."""
     if executor == "local":
         return [fn(t) for t in tasks]
+    factor = backup_factor()  # a bad setting is an error before the cluster is joined
     with connected(executor, address):
         import ray
 
@@ -129,33 +152,121 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
             return _journaled(fn, entries, task)
 
         remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(journaled) if _is_cuda(device) else ray.remote(journaled)
-        pending = [remote.remote(t) for t in tasks]
-        order = {ref: k for k, ref in enumerate(pending)}
-        results: list[Any] = [None] * len(tasks)
-        ran_on: Counter[str] = Counter()
-        with tqdm(total=len(tasks), desc="ray tasks", unit="task", leave=False) as bar:
-            while pending:  # as they finish, so that the bar moves and a failed task stops the run early
-                done, pending = ray.wait(pending, num_returns=1)
-                node, results[order[done[0]]] = _result(ray, done[0], where)
+        return _gather(ray, lambda k: remote.remote(tasks[k]), len(tasks), where,
+                       lambda: cluster_slots(executor, device, address), factor)
+
+
+def backup_factor() -> float:
+    """:data:`BACKUP_FACTOR`, or ``DEEP_SSFR_RAY_BACKUP_FACTOR`` where set (``0``: no backup copies)."""
+    text = os.environ.get(BACKUP_FACTOR_ENV, "")
+    try:
+        factor = float(text) if text else BACKUP_FACTOR
+    except ValueError:
+        factor = -1.0
+    if not factor >= 0:
+        raise ValueError(f"{BACKUP_FACTOR_ENV}={text!r}: a number, 0 or more (0 starts no backup copies)")
+    return factor
+
+
+def overdue(unfinished: Sequence[int], started: dict[int, float], took: Sequence[float], backed: set[int],
+            slots: int, now: float, factor: float, floor: float = BACKUP_MIN_S) -> list[int]:
+    """The tasks to give a backup copy now, the longest running first: of the first ``slots``
+    ``unfinished`` ones (the others wait for a slot, so none is free), those without a copy yet that
+    have run longer than ``factor`` times the median of the finished ones' times ``took`` (and
+    ``floor`` seconds), as many as the slots that neither those tasks nor the copies already
+    ``backed`` hold. ``started``: when each of the running ones was (or could have been) started."""
+    if factor <= 0 or not took:
+        return []
+    running = list(unfinished[:slots])
+    free = slots - len(running) - len(backed.intersection(unfinished))
+    if free <= 0:
+        return []
+    limit = max(floor, factor * statistics.median(took))
+    late = [k for k in running if k not in backed and now - started[k] > limit]
+    return sorted(late, key=lambda k: started[k])[:free]
+
+
+def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slots: Callable[[], int],
+            factor: float) -> list[Any]:
+    """The results of the ``count`` tasks ``submit(k)`` starts, in task order, as they finish (so
+    that the bar moves and a failed task stops the run early). A task that runs long while the
+    cluster has a free slot (:func:`overdue`) gets one backup copy; the first copy to finish gives
+    the result, and the other is cancelled and waited for (a few seconds at most), so that no copy
+    writes once the stage finishes its entry. A copy's loss (its node or worker gone, retries spent)
+    ends the run only when no other copy of its task is left."""
+    copies = {k: [submit(k)] for k in range(count)}
+    task_of = {copies[k][0]: k for k in range(count)}
+    results: list[Any] = [None] * count
+    ran_on: Counter[str] = Counter()
+    unfinished = list(range(count))
+    now = time.monotonic()
+    started = {k: now for k in unfinished[:slots()]}  # when each task was (or could have been) started
+    copy_started: dict[int, float] = {}  # when each task's backup copy was started
+    backups: set[Any] = set()
+    took: list[float] = []
+    cancelled: list[Any] = []
+    won = 0
+    with tqdm(total=count, desc="ray tasks", unit="task", leave=False) as bar:
+        while unfinished:
+            done, _ = ray.wait(list(task_of), num_returns=1, timeout=BACKUP_POLL_S if factor > 0 else None)
+            now = time.monotonic()
+            for ref in done:
+                k = task_of.pop(ref)
+                backup = ref in backups
+                copies[k].remove(ref)
+                try:
+                    node, results[k] = ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    if copies[k] and not isinstance(exc, ray.exceptions.RayTaskError):
+                        log.warning("ray: a copy of task %d of %d was lost (%s); its other copy goes on",
+                                    k + 1, count, _first_line(exc))
+                        continue
+                    _raise(ray, exc, where)
+                for other in copies.pop(k):  # the task's other copy, still running or waiting
+                    with contextlib.suppress(ray.exceptions.RayError):
+                        ray.cancel(other, force=True)
+                    task_of.pop(other)
+                    cancelled.append(other)
+                won += backup
+                if backup or k in started:  # not one that ran outside the slots counted
+                    took.append(now - (copy_started[k] if backup else started[k]))
+                unfinished.remove(k)
                 ran_on[node] += 1
                 bar.update()
-        log.info("ray: the tasks ran on %s", ", ".join(f"{node} ({n})" for node, n in sorted(ran_on.items())))
-        return results
+            if factor <= 0 or not took:
+                continue
+            n = slots()  # nodes may have joined or died
+            for k in unfinished[:n]:
+                started.setdefault(k, now)
+            live = {task_of[ref] for ref in backups if ref in task_of}
+            for k in overdue(unfinished, started, took, live, n, now, factor):
+                log.info("ray: task %d of %d has run %.0f s, over %g times the %.1f s median of the finished "
+                         "ones: a backup copy started", k + 1, count, now - started[k], factor,
+                         statistics.median(took))
+                ref = submit(k)
+                copies[k].append(ref)
+                task_of[ref] = k
+                backups.add(ref)
+                copy_started[k] = now
+    if cancelled:  # a force-cancelled copy's worker is killed; its file written or not, none after this
+        ray.wait(cancelled, num_returns=len(cancelled), timeout=CANCEL_WAIT_S)
+    if backups:
+        log.info("ray: %d backup cop%s, %d of them finished first", len(backups), "ies" * (len(backups) != 1)
+                 or "y", won)
+    log.info("ray: the tasks ran on %s", ", ".join(f"{node} ({n})" for node, n in sorted(ran_on.items())))
+    return results
 
 
-def _result(ray: Any, ref: Any, where: str) -> Any:
-    """A finished task's result; its failure raised as a local run's would be, so that the stage's
-    one-line error says what went wrong rather than the remote traceback (``DEEP_SSFR_DEBUG=1``
-    shows it, chained), and Ray's own failures (retries spent on lost nodes) as one line too."""
-    try:
-        return ray.get(ref)
-    except ray.exceptions.RayTaskError as exc:
+def _raise(ray: Any, exc: Exception, where: str) -> None:
+    """A task's failure raised as a local run's would be, so that the stage's one-line error says
+    what went wrong rather than the remote traceback (``DEEP_SSFR_DEBUG=1`` shows it, chained), and
+    Ray's own failures (retries spent on lost nodes) as one line too."""
+    if isinstance(exc, ray.exceptions.RayTaskError):
         if isinstance(exc.cause, Exception):
             raise exc.cause from exc
         raise RuntimeError(f"a Ray task on {where} failed: {_first_line(exc)}") from exc
-    except ray.exceptions.RayError as exc:
-        raise RuntimeError(f"a Ray task on {where} failed ({type(exc).__name__}: {_first_line(exc)}); the "
-                           "files it finished are kept and a re-run resumes") from exc
+    raise RuntimeError(f"a Ray task on {where} failed ({type(exc).__name__}: {_first_line(exc)}); the "
+                       "files it finished are kept and a re-run resumes") from exc
 
 
 def _first_line(exc: BaseException) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -174,3 +175,83 @@ def test_ray_tasks_of_a_gpu_run_each_hold_a_gpu():
             assert ids == [] and not visible
     finally:
         ray.shutdown()
+
+
+def test_only_a_task_running_long_while_a_slot_is_free_gets_a_backup_copy():
+    """The policy of backup copies (:func:`pipeline.executor.overdue`): a task past twice the median
+    of the finished ones and the floor, among those holding slots, while a slot is free; the longest
+    running first; none for a task that waits for a slot, none twice, none with copies off."""
+    from pipeline.executor import overdue
+
+    started = {0: 0.0, 1: 5.0, 2: 1.0, 3: 50.0}
+    # tasks 0 and 2 have run 60 and 59 s, over 2 x 20 s; 1 has run 55 s; 3 only 10 s
+    assert overdue([0, 1, 2, 3], started, [20.0], set(), 8, 60.0, 2.0, floor=1.0) == [0, 2, 1]
+    assert overdue([0, 1, 2, 3], started, [20.0], set(), 6, 60.0, 2.0, floor=1.0) == [0, 2]  # two slots free
+    assert overdue([0, 1, 2, 3], started, [20.0], set(), 5, 60.0, 2.0, floor=1.0) == [0]
+    assert overdue([0, 1, 2, 3], started, [20.0], set(), 4, 60.0, 2.0, floor=1.0) == []  # none free
+    assert overdue([0, 1, 2, 3], started, [20.0], set(), 2, 60.0, 2.0, floor=1.0) == []  # 2 and 3 wait
+    assert overdue([0, 1, 2, 3], started, [20.0], {0}, 6, 60.0, 2.0, floor=1.0) == [2]  # 0's copy holds one
+    assert overdue([0, 1, 2, 3], started, [29.0], set(), 8, 60.0, 2.0, floor=1.0) == [0, 2]  # over 58 s only
+    assert overdue([0, 1, 2, 3], started, [20.0], set(), 8, 60.0, 2.0, floor=58.5) == [0, 2]  # the floor
+    assert overdue([0, 1, 2, 3], started, [], set(), 8, 60.0, 2.0) == []  # nothing finished to compare with
+    assert overdue([0, 1, 2, 3], started, [1.0], set(), 8, 60.0, 0.0) == []  # copies off
+
+
+def test_the_backup_factor_comes_from_the_environment_or_a_clear_error(monkeypatch):
+    from pipeline.executor import BACKUP_FACTOR, BACKUP_FACTOR_ENV, backup_factor
+
+    monkeypatch.delenv(BACKUP_FACTOR_ENV, raising=False)
+    assert backup_factor() == BACKUP_FACTOR
+    monkeypatch.setenv(BACKUP_FACTOR_ENV, "0")
+    assert backup_factor() == 0
+    monkeypatch.setenv(BACKUP_FACTOR_ENV, "1.5")
+    assert backup_factor() == 1.5
+    for bad in ("fast", "-1", "nan"):
+        monkeypatch.setenv(BACKUP_FACTOR_ENV, bad)
+        with pytest.raises(ValueError, match=f"^DEEP_SSFR_RAY_BACKUP_FACTOR='{bad}': a number, 0 or more"):
+            backup_factor()
+
+
+@pytest.mark.slow
+def test_a_straggling_ray_task_is_overtaken_by_its_backup_copy(tmp_path, monkeypatch, caplog):
+    """Three tasks on three CPUs, the first try of one hanging (a slow or hung node): once it has run
+    over the floor and twice the others' time, a backup copy runs it on the slot they freed, the run
+    ends with every result in order long before the hung try would have, and the hung try's worker
+    is gone (cancelled and waited for) before the results come back, so that it writes nothing after."""
+    import os
+    import time
+
+    ray = pytest.importorskip("ray")
+    from pipeline import executor
+
+    monkeypatch.setattr(executor, "BACKUP_MIN_S", 2.0)
+    monkeypatch.delenv(executor.BACKUP_FACTOR_ENV, raising=False)
+    hung = tmp_path / "hung"
+
+    def task(k):
+        if k == 2:
+            try:
+                os.close(os.open(hung, os.O_CREAT | os.O_EXCL))  # the first try only
+            except FileExistsError:
+                return k, os.getpid()
+            hung.write_text(str(os.getpid()))
+            time.sleep(90)
+        time.sleep(0.5)
+        return k, os.getpid()
+
+    ray.init(num_cpus=3, include_dashboard=False, configure_logging=False, log_to_driver=False)
+    try:
+        start = time.monotonic()
+        with caplog.at_level("INFO", logger="deep_ssfr"):
+            done = run_tasks(task, [0, 1, 2], "ray")
+        took = time.monotonic() - start
+        pid = int(hung.read_text())
+        alive = os.path.exists(f"/proc/{pid}") and "zombie" not in Path(f"/proc/{pid}/status").read_text()
+    finally:
+        ray.shutdown()
+    assert [k for k, _ in done] == [0, 1, 2]
+    assert took < 60, f"{took:.0f} s: the backup copy should end the run, not the hung try"
+    assert "ray: task 3 of 3 has run" in caplog.text and "a backup copy started" in caplog.text
+    assert "ray: 1 backup copy, 1 of them finished first" in caplog.text
+    assert pid != done[2][1], "the result is the backup copy's"
+    assert not alive, "the hung try's worker was killed before the run went on"
