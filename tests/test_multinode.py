@@ -520,7 +520,8 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
     its storage still mounted, where no connection closes) once both its tasks have written and while
     one of them, at least, is writing: the driver's keepalive (here 10 s and 5 s;
     ``executor.RAY_KEEPALIVE`` by default, not Ray's 7 minutes) finds their connections dead, Ray
-    runs the unfinished tasks again on the head, and the command ends whole. The node's workers,
+    runs the unfinished tasks again on the head (backup copies off: they would race the retries
+    there), and the command ends whole. The node's workers,
     thawed once the run has finished and their raylet still frozen, go on with their views, and the
     finished entry gets none of their writes: no file rewritten, no journal, no temporary."""
     import signal
@@ -529,7 +530,8 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
     log = tmp_path / "driver.log"
     with open(log, "w") as out:
         proc = subprocess.Popen([str(BIN / "deep-ssfr"), "dataset", "--config", str(sharded)], cwd=ROOT,
-                                env={**os.environ, **cluster.env, "RAY_grpc_client_keepalive_timeout_ms": "5000"},
+                                env={**os.environ, **cluster.env, "RAY_grpc_client_keepalive_timeout_ms": "5000",
+                                     "DEEP_SSFR_RAY_BACKUP_FACTOR": "0"},  # the keepalive's retries, not copies
                                 stdout=out, stderr=subprocess.STDOUT)
     assert cluster.node is not None
     try:
