@@ -249,7 +249,11 @@ def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slot
                 backups.add(ref)
                 copy_started[k] = now
     if cancelled:  # a force-cancelled copy's worker is killed; its file written or not, none after this
-        ray.wait(cancelled, num_returns=len(cancelled), timeout=CANCEL_WAIT_S)
+        _, left = ray.wait(cancelled, num_returns=len(cancelled), timeout=CANCEL_WAIT_S)
+        if left:
+            log.warning("ray: %d cancelled cop%s did not end within %g s (on a hung node?); once the entry is "
+                        "finished, %s writes are refused", len(left), "ies" * (len(left) != 1) or "y",
+                        CANCEL_WAIT_S, "their" if len(left) != 1 else "its")
     if backups:
         log.info("ray: %d backup cop%s, %d of them finished first", len(backups), "ies" * (len(backups) != 1)
                  or "y", won)
