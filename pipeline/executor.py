@@ -4,7 +4,9 @@ With ``ray`` every task runs in a worker process of the cluster named by ``ray_a
 the one ``ray start`` made on this machine, else a local one for the run), and writes its files
 straight into the stage's cache entry, so every node must see the same ``data_dir`` (shared
 storage). The driver keeps the entry's lock and writes its manifest once all tasks are back; the
-work is cut into one shard per CPU of the cluster, counted once joined.
+work is cut into one shard per CPU of the cluster, counted once joined. A task that runs long
+(a slow or hung node) while a slot is free gets a backup copy, the first copy to finish winning
+(:data:`BACKUP_FACTOR`).
 
 On a GPU every task asks Ray for ``1 / TASKS_PER_GPU`` of one, and Ray gives it its own
 (``CUDA_VISIBLE_DEVICES`` set to it, so it is the task's ``cuda:0``); the work is cut into
