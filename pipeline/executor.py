@@ -193,7 +193,7 @@ def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slot
     """The results of the ``count`` tasks ``submit(k)`` starts, in task order, as they finish (so
     that the bar moves and a failed task stops the run early). A task that runs long while the
     cluster has a free slot (:func:`overdue`) gets one backup copy; the first copy to finish gives
-    the result, and the other is cancelled and waited for (a few seconds at most), so that no copy
+    the result, and the other is cancelled and waited for (:data:`CANCEL_WAIT_S` at most), so that no copy
     writes once the stage finishes its entry. A copy's loss (its node or worker gone, retries spent)
     ends the run only when no other copy of its task is left."""
     copies = {k: [submit(k)] for k in range(count)}
@@ -203,8 +203,7 @@ def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slot
     unfinished = list(range(count))
     now = time.monotonic()
     started = {k: now for k in unfinished[:slots()]}  # when each task was (or could have been) started
-    copy_started: dict[int, float] = {}  # when each task's backup copy was started
-    backups: set[Any] = set()
+    backups: dict[Any, float] = {}  # every backup copy, and when it was started
     took: list[float] = []
     cancelled: list[Any] = []
     won = 0
@@ -231,7 +230,7 @@ def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slot
                     cancelled.append(other)
                 won += backup
                 if backup or k in started:  # not one that ran outside the slots counted
-                    took.append(now - (copy_started[k] if backup else started[k]))
+                    took.append(now - (backups[ref] if backup else started[k]))
                 unfinished.remove(k)
                 ran_on[node] += 1
                 bar.update()
@@ -248,19 +247,21 @@ def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slot
                 ref = submit(k)
                 copies[k].append(ref)
                 task_of[ref] = k
-                backups.add(ref)
-                copy_started[k] = now
+                backups[ref] = now
     if cancelled:  # a force-cancelled copy's worker is killed; its file written or not, none after this
         _, left = ray.wait(cancelled, num_returns=len(cancelled), timeout=CANCEL_WAIT_S)
         if left:
-            log.warning("ray: %d cancelled cop%s did not end within %g s (on a hung node?); once the entry is "
-                        "finished, %s writes are refused", len(left), "ies" * (len(left) != 1) or "y",
-                        CANCEL_WAIT_S, "their" if len(left) != 1 else "its")
+            log.warning("ray: %d cancelled %s did not end within %g s (on a hung node?); once the entry is "
+                        "finished, %s writes are refused", len(left), _copies(len(left)), CANCEL_WAIT_S,
+                        "its" if len(left) == 1 else "their")
     if backups:
-        log.info("ray: %d backup cop%s, %d of them finished first", len(backups), "ies" * (len(backups) != 1)
-                 or "y", won)
+        log.info("ray: %d backup %s, %d of them finished first", len(backups), _copies(len(backups)), won)
     log.info("ray: the tasks ran on %s", ", ".join(f"{node} ({n})" for node, n in sorted(ran_on.items())))
     return results
+
+
+def _copies(n: int) -> str:
+    return "copy" if n == 1 else "copies"
 
 
 def _raise(ray: Any, exc: Exception, where: str) -> None:
