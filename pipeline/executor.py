@@ -6,7 +6,8 @@ straight into the stage's cache entry, so every node must see the same ``data_di
 storage). The driver keeps the entry's lock and writes its manifest once all tasks are back; the
 work is cut into one shard per CPU of the cluster, counted once joined. A task that runs long
 (a slow or hung node) while a slot is free gets a backup copy, the first copy to finish winning
-(:data:`BACKUP_FACTOR`).
+(:data:`BACKUP_FACTOR`). Work that is not cut into frames (a scene's simulation) runs one task an
+item, asking for the CPUs it uses (``run_tasks(cpus=...)``).
 
 On a GPU every task asks Ray for ``1 / TASKS_PER_GPU`` of one, and Ray gives it its own
 (``CUDA_VISIBLE_DEVICES`` set to it, so it is the task's ``cuda:0``); the work is cut into
@@ -128,34 +129,43 @@ def connected(executor: str, address: str = "") -> Iterator[None]:
 
 
 def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local", address: str = "",
-              device: str = "cpu") -> list[R]:
+              device: str = "cpu", cpus: int = 1, backups: bool = True) -> list[R]:
     """``fn(task)`` for every task, results in task order: here one after another (``local``), or
     as Ray tasks (``ray``; ``fn`` and the tasks travel by cloudpickle, so closures over paths,
     configs and networks are fine, open devices and files are not). With a CUDA ``device`` each Ray
-    task holds a share of one GPU, which it sees as ``cuda:0``."""
+    task holds a share of one GPU, which it sees as ``cuda:0``; else ``cpus`` CPUs (at most the
+    largest node's, so that every task fits somewhere). ``backups=False``: no backup copies
+    (:data:`BACKUP_FACTOR`), for tasks whose time says nothing of the others'."""
     if executor == "local":
         return [fn(t) for t in tasks]
-    factor = backup_factor()  # a bad setting is an error before the cluster is joined
+    factor = backup_factor() if backups else 0.0  # a bad setting is an error before the cluster is joined
     with connected(executor, address):
         import ray
 
         have = ray.cluster_resources()
-        nodes = sum(1 for n in ray.nodes() if n.get("Alive"))
+        alive = [n for n in ray.nodes() if n.get("Alive")]
         where = address or os.environ.get("RAY_ADDRESS") or "this machine"
-        gpus = f", {have.get('GPU', 0):g} GPUs, {1 / TASKS_PER_GPU:g} a task" if _is_cuda(device) else ""
-        if _is_cuda(device) and have.get("GPU", 0) < 1 / TASKS_PER_GPU:  # its tasks would wait for ever
-            raise RuntimeError(f"the run's device is {device} but the Ray cluster at {where} has no GPU: start "
-                               "its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
-        log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, nodes, "s" * (nodes != 1),
-                 have.get("CPU", 0), gpus)
+        if _is_cuda(device):
+            if have.get("GPU", 0) < 1 / TASKS_PER_GPU:  # its tasks would wait for ever
+                raise RuntimeError(f"the run's device is {device} but the Ray cluster at {where} has no GPU: "
+                                   "start its nodes with --num-gpus, or run with DEEP_SSFR_DEVICE=cpu")
+            options: dict[str, float] = {"num_gpus": 1 / TASKS_PER_GPU}
+            each = f", {have.get('GPU', 0):g} GPUs, {1 / TASKS_PER_GPU:g} a task"
+        else:
+            largest = max((n.get("Resources", {}).get("CPU", 0) for n in alive), default=0)
+            options = {"num_cpus": max(1, min(cpus, int(largest) or cpus))}
+            each = f", {options['num_cpus']:g} a task" if cpus != 1 else ""
+        log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, len(alive),
+                 "s" * (len(alive) != 1), have.get("CPU", 0), each)
         entries = cache.open_entries()
 
         def journaled(task: T) -> tuple[str, R]:  # a function, not a partial: ray.remote takes only functions
             return _journaled(fn, entries, task)
 
-        remote = ray.remote(num_gpus=1 / TASKS_PER_GPU)(journaled) if _is_cuda(device) else ray.remote(journaled)
+        remote = ray.remote(**options)(journaled)
+        per = 1 if _is_cuda(device) else int(options["num_cpus"])
         return _gather(ray, lambda k: remote.remote(tasks[k]), len(tasks), where,
-                       lambda: cluster_slots(executor, device, address), factor)
+                       lambda: max(1, cluster_slots(executor, device, address) // per), factor)
 
 
 def backup_factor() -> float:
