@@ -10,7 +10,7 @@ import typer
 
 from pipeline.config import METHODS
 from pipeline.executor import cluster_scope
-from stages.common import StageOptions, make_run, stage_main
+from stages.common import StageOptions, stage_main
 
 app = typer.Typer(name="deep-ssfr", no_args_is_help=True, add_completion=False, rich_markup_mode=None,
                   help="Screen-space fluid rendering with a cGAN normal-map refiner: simulate, build the dataset, "
@@ -32,18 +32,13 @@ STAGES = {
 
 
 def _run(stage: str, opts: StageOptions, *extra, module: str = "") -> None:
-    """Run ``stages.<stage>`` (or ``module``) at the error boundary: its ``main(opts, *extra)``, else
-    its ``ensure`` for every configured scene; exit with the stage's code when it failed."""
+    """Run ``stages.<stage>`` (or ``module``) at the error boundary: its ``main(opts, *extra)``; exit
+    with the stage's code when it failed."""
     module = importlib.import_module(module or f"stages.{stage.replace('-', '_')}")
-
-    def each_scene() -> None:
-        run = make_run(opts)
-        for scene in run.loaded.scenes.values():
-            module.ensure(run, scene, force=run.force)
 
     def body() -> None:
         with cluster_scope():  # one Ray cluster for the whole command, not one a scene or size
-            module.main(opts, *extra) if hasattr(module, "main") else each_scene()
+            module.main(opts, *extra)
 
     if code := stage_main(stage, body):
         raise typer.Exit(code)

@@ -17,7 +17,7 @@ from pipeline.dataset import build_dataset, manifest_records
 from pipeline.device import warp_device
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
 from stages import simulate
-from stages.common import Run
+from stages.common import Run, StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
 
@@ -64,6 +64,15 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     if empty:
         log.warning("dataset %s: %d views show no fluid (e.g. %s)", scene.name, len(empty), empty[0])
     return entry
+
+
+def main(opts: StageOptions) -> None:
+    """``deep-ssfr dataset``: every configured scene."""
+    run = make_run(opts)
+    scenes = list(run.loaded.scenes.values())
+    simulate.ahead(run, scenes)
+    for scene in scenes:
+        ensure(run, scene, force=run.force)
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ def sequences(run: Run) -> list[HeldOut]:
         elif cfg.dataset.validation_camera != "none":
             pairs.append((scene, cfg.dataset.validation_camera))
     pairs += [(scene, c) for scene in run.loaded.imported.values() for c in CAMERAS]
+    simulate.ahead(run, list({scene.name: scene for scene, _ in pairs}.values()))
     out = []
     for scene, camera in pairs:
         entry, sim = dataset.ensure(run, scene), simulate.ensure(run, scene)

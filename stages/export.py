@@ -22,6 +22,7 @@ log = logging.getLogger("deep_ssfr")
 def main(opts: StageOptions, fmt: str = "ply") -> None:
     """``deep-ssfr export``."""
     run = make_run(opts)
+    simulate.ahead(run, list(run.loaded.scenes.values()))
     for scene in run.loaded.scenes.values():
         entry = simulate.ensure(run, scene)
         out = entry.dir / "export" / fmt

@@ -101,6 +101,7 @@ def main(opts: StageOptions) -> None:
     """``deep-ssfr metaball-dataset``: every training and validation scene, and the random sets."""
     run = make_run(opts)
     train, val = roles(run)
+    simulate.ahead(run, [*train, *val])
     for scene in [*train, *val]:
         ensure(run, scene, force=run.force)
     ensure_random_sets(run, force=run.force)

@@ -104,6 +104,7 @@ def main(opts: StageOptions) -> None:
     """``deep-ssfr render`` of the configured scenes."""
     run = make_run(opts)
     start = time.perf_counter()
+    simulate.ahead(run, list(run.loaded.scenes.values()))
     for scene in run.loaded.scenes.values():
         entry = ensure(run, scene, force=run.force)
         log.info("render %s: outputs in %s", scene.name, entry.dir)

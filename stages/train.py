@@ -18,7 +18,7 @@ from pipeline import cache
 from pipeline.config import to_dict
 from pipeline.model import distributed
 from pipeline.model.train import TimeLimitReached, TrainingError, fit, init_path
-from stages import dataset
+from stages import dataset, simulate
 from stages.common import Run, StageError, StageOptions, make_run, train_scenes
 
 log = logging.getLogger("deep_ssfr")
@@ -32,9 +32,9 @@ def collect(run: Run) -> tuple[dict[str, str], list[Path], list[Path]]:
     validating = set(run.config.train.validation_scenes) or held_out
     for name in validating - held_out:
         raise StageError(f"train.validation_scenes names {name!r}, which is not in dataset.holdout_scenes")
-    for scene in run.loaded.scenes.values():
-        if scene.name in held_out and scene.name not in validating:
-            continue  # evaluated only: training never reads it
+    read = [s for s in run.loaded.scenes.values() if s.name not in held_out or s.name in validating]
+    simulate.ahead(run, read)  # evaluated only: training never reads the others
+    for scene in read:
         entry = dataset.ensure(run, scene)
         keys[scene.name] = entry.key
         for rec in entry.manifest()["frames"]:
