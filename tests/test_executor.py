@@ -51,6 +51,57 @@ def test_ray_dataset_render_and_evaluate_equal_a_serial_run(tiny_dam, tmp_path):
     assert evaluation_metrics(serial) == evaluation_metrics(tmp_path / "ray_data")
 
 
+@pytest.mark.slow
+def test_ray_simulates_the_scenes_at_once_to_a_serial_runs_frames(tiny_dam, tmp_path, caplog):
+    """``simulate --executor ray`` runs each scene as a Ray task asking for the CPUs of its solver
+    threads (here 3, on a cluster of 2: at most the largest node's, so that it runs at all) with the
+    config's thread count, so its frames are a serial run's to the bit; a sequence cut back after a
+    kill resumes on the cluster to the same frames."""
+    import numpy as np
+
+    ray = pytest.importorskip("ray")
+    from pipeline.frames import load_frame
+
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["scenes"] = ["tiny_dam", "tiny_pool"]
+    body["simulate"].update(frames=4, threads=3)
+    pool = yaml.safe_load((tiny_dam.parent / "scenes" / "tiny_dam.yaml").read_text())
+    pool.update(name="tiny_pool", fluid=[{"shape": "box", "lo": [0.3, 0, 0], "hi": [0.6, 0.15, 0.3]}])
+    (tiny_dam.parent / "scenes" / "tiny_pool.yaml").write_text(yaml.safe_dump(pool))
+    tiny_dam.write_text(yaml.safe_dump(body))
+    body.update(data_dir=str(tmp_path / "ray_data"), scene_dir=str(tiny_dam.parent / "scenes"))
+    (tmp_path / "ray.yaml").write_text(yaml.safe_dump(body))
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
+
+    def same_frames() -> None:
+        serial = sorted((tiny_dam.parent / "data" / "simulate").iterdir())
+        sharded = sorted((tmp_path / "ray_data" / "simulate").iterdir())
+        assert [a.name for a in serial] == [b.name for b in sharded] and len(serial) == 2
+        for a, b in zip(serial, sharded, strict=True):
+            assert (b / "manifest.json").exists()
+            for k in range(1, 5):
+                for x, y in zip(load_frame(a / f"frame_{k:04d}.npz"), load_frame(b / f"frame_{k:04d}.npz"),
+                                strict=True):
+                    np.testing.assert_array_equal(x, y)
+
+    ray.init(num_cpus=2, include_dashboard=False, configure_logging=False, log_to_driver=False)
+    try:
+        with caplog.at_level("INFO", logger="deep_ssfr"):
+            assert cli.main(["simulate", "--config", str(tmp_path / "ray.yaml"), "--executor", "ray"]) == 0
+        assert "ray: 2 tasks on this machine (1 node, 2 CPUs, 2 a task)" in caplog.text
+        same_frames()
+        cut = sorted((tmp_path / "ray_data" / "simulate").iterdir())[1]
+        for name in ("manifest.json", "frame_0003.npz", "frame_0004.npz"):
+            (cut / name).unlink()  # a run killed after its second frame
+        caplog.clear()
+        with caplog.at_level("INFO", logger="deep_ssfr"):
+            assert cli.main(["simulate", "--config", str(tmp_path / "ray.yaml"), "--executor", "ray"]) == 0
+        assert "ray: 1 tasks" in caplog.text and "cached" in caplog.text
+        same_frames()
+    finally:
+        ray.shutdown()
+
+
 def evaluation_metrics(root):
     """The evaluate entry's metrics under ``root`` (a data_dir) without their timings."""
     (entry,) = (root / "evaluate").iterdir()

@@ -487,8 +487,9 @@ def _restart_node(cluster: Cluster, proc: subprocess.Popen) -> None:
 
 def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path, Path, Path]:
     """The dataset of 30 frames (60 views at 48 x 48) built serially from ``tiny_dam``, and a config
-    of the same work sharded over the cluster into a cache of its own, its frames simulated: the
-    serial dataset's folder, the sharded config and the sharded dataset's folder."""
+    of the same work sharded over the cluster into a cache of its own, its frames simulated there
+    (one Ray task, asking for 2 CPUs): the serial dataset's folder, the sharded config and the
+    sharded dataset's folder."""
     body = yaml.safe_load(tiny_dam.read_text())
     body["simulate"]["frames"] = 30
     body["dataset"] = {"width": 48, "height": 48, "frame_stride": 1, "holdout_scenes": ["tiny_dam"]}
@@ -499,7 +500,8 @@ def _sixty_views(cluster: Cluster, tiny_dam: Path, tmp_path: Path) -> tuple[Path
                 ray_address=cluster.address)
     sharded.write_text(yaml.safe_dump(body))
     assert cli.main(["dataset", "--config", str(tiny_dam)]) == 0
-    assert cli.main(["simulate", "--config", str(sharded)]) == 0
+    simulated = _command(cluster, ["simulate", "--config", str(sharded)], ROOT)
+    assert f"ray: 1 tasks on {cluster.address} (2 nodes, 3 CPUs, 2 a task)" in simulated  # the driver's 2 cores
     return tiny_dam.parent / "data" / "dataset", sharded, sharded.parent / "data" / "dataset"
 
 
