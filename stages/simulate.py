@@ -11,7 +11,9 @@ import dataclasses
 import logging
 import os
 import sys
+import traceback
 from collections.abc import Sequence
+from pathlib import Path
 
 from pipeline import cache
 from pipeline.config import SceneConfig, to_dict
@@ -59,7 +61,8 @@ def ensure_all(run: Run, scenes: Sequence[SceneConfig], force: bool = False) -> 
     else the driver's cores, as a serial run here would use: the CPU solver's sums follow the
     thread count, so the frames are a serial run's to the bit), or for a GPU on a CUDA run, and gets
     no backup copy (a scene's time says nothing of another's). A task lost with its node runs
-    again and resumes after its last whole frame."""
+    again and resumes after its last whole frame. A scene that fails (a blow-up) does not keep the
+    others unfinished: their entries are finished, then its error is raised."""
     if run.config.executor != "ray":
         for scene in scenes:
             ensure(run, scene, force)
@@ -80,14 +83,29 @@ def ensure_all(run: Run, scenes: Sequence[SceneConfig], force: bool = False) -> 
     params, seed, device = run.config.simulate, run.config.seed, warp_device(run.device)
     threads = params.threads or os.cpu_count() or 1
     solver = dataclasses.replace(params, threads=threads)  # the key keeps the config's own
-    results = run_tasks(lambda task: simulate_sequence(task[0], task[1], solver, device, seed),
-                        [(entry.dir, scene) for entry, scene in begun], "ray", run.config.ray_address, run.device,
-                        cpus=threads, backups=False)
+
+    def one(task: tuple[Path, SceneConfig]) -> dict | Exception:
+        try:
+            return simulate_sequence(task[0], task[1], solver, device, seed)
+        except Exception as exc:  # returned, not raised: Ray would end the run before the others finish
+            exc.add_note(traceback.format_exc())  # shown with DEEP_SSFR_DEBUG=1
+            return exc
+
+    results = run_tasks(one, [(entry.dir, scene) for entry, scene in begun], "ray", run.config.ray_address,
+                        run.device, cpus=threads, backups=False)
+    failed = []
     for (entry, scene), extra in zip(begun, results, strict=True):
+        if isinstance(extra, Exception):
+            failed.append((scene, extra))
+            continue
         files = extra.pop("files")
         entry.finish(files, extra.pop("timings"), **extra)
         log.info("simulate %s: %d frames, %.3g particle-steps/s on the cluster -> %s", scene.name, len(files),
                  extra["particle_steps_per_second"], entry.dir)
+    for scene, exc in failed[1:]:  # the first is the stage's error
+        log.error("simulate %s: failed too: %s", scene.name, exc)
+    if failed:
+        raise failed[0][1]
 
 
 def ahead(run: Run, scenes: Sequence[SceneConfig]) -> None:

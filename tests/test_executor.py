@@ -102,6 +102,35 @@ def test_ray_simulates_the_scenes_at_once_to_a_serial_runs_frames(tiny_dam, tmp_
         ray.shutdown()
 
 
+@pytest.mark.slow
+def test_a_scene_that_fails_on_ray_leaves_the_others_finished(tiny_dam, tmp_path, capsys):
+    """One of two scenes simulated over Ray has no particles (its fluid outside the container): the
+    command fails with that scene's error, and the other scene's entry is finished (a re-run finds
+    it cached), not left unfinished behind the failure."""
+    ray = pytest.importorskip("ray")
+
+    body = yaml.safe_load(tiny_dam.read_text())
+    body.update(scenes=["tiny_dam", "tiny_void"], executor="ray")
+    body["simulate"].update(frames=2, threads=1)
+    void = yaml.safe_load((tiny_dam.parent / "scenes" / "tiny_dam.yaml").read_text())
+    void.update(name="tiny_void", fluid=[{"shape": "box", "lo": [1, 1, 1], "hi": [1.2, 1.2, 1.2]}])  # outside
+    (tiny_dam.parent / "scenes" / "tiny_void.yaml").write_text(yaml.safe_dump(void))
+    tiny_dam.write_text(yaml.safe_dump(body))
+    ray.init(num_cpus=2, include_dashboard=False, configure_logging=False, log_to_driver=False)
+    try:
+        assert cli.main(["simulate", "--config", str(tiny_dam)]) == 1
+        assert "scene 'tiny_void' has no particles" in capsys.readouterr().err
+        (done,) = (tiny_dam.parent / "data" / "simulate").glob("tiny_dam-*/manifest.json")
+        assert not list((tiny_dam.parent / "data" / "simulate").glob("tiny_void-*/manifest.json"))
+        body["scenes"] = ["tiny_dam"]
+        tiny_dam.write_text(yaml.safe_dump(body))
+        before = done.stat().st_mtime_ns
+        assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
+        assert done.stat().st_mtime_ns == before
+    finally:
+        ray.shutdown()
+
+
 def evaluation_metrics(root):
     """The evaluate entry's metrics under ``root`` (a data_dir) without their timings."""
     (entry,) = (root / "evaluate").iterdir()
