@@ -154,6 +154,9 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
         else:
             largest = max((n.get("Resources", {}).get("CPU", 0) for n in alive), default=0)
             options = {"num_cpus": max(1, min(cpus, int(largest) or cpus))}
+            if options["num_cpus"] < cpus:
+                log.warning("ray: a task asks for %d CPUs and the largest node has %g: it gets those, and its %d "
+                            "threads share them", cpus, largest, cpus)
             each = f", {options['num_cpus']:g} a task" if cpus != 1 else ""
         log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, len(alive),
                  "s" * (len(alive) != 1), have.get("CPU", 0), each)

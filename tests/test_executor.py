@@ -89,6 +89,7 @@ def test_ray_simulates_the_scenes_at_once_to_a_serial_runs_frames(tiny_dam, tmp_
         with caplog.at_level("INFO", logger="deep_ssfr"):
             assert cli.main(["simulate", "--config", str(tmp_path / "ray.yaml"), "--executor", "ray"]) == 0
         assert "ray: 2 tasks on this machine (1 node, 2 CPUs, 2 a task)" in caplog.text
+        assert "a task asks for 3 CPUs and the largest node has 2" in caplog.text
         same_frames()
         cut = sorted((tmp_path / "ray_data" / "simulate").iterdir())[1]
         for name in ("manifest.json", "frame_0003.npz", "frame_0004.npz"):
