@@ -22,7 +22,7 @@ import shutil
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -172,7 +172,19 @@ def _journal(held: tuple[Path, _Open] | None, target: Path) -> None:
     folder, state = held
     line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
                        "blake2b": file_hash(target)})
-    with state.lock, open(folder / state.journal, "a") as fh:
+    if state.owner:
+        with state.lock, open(folder / state.journal, "a") as fh:
+            fh.write(line + "\n")
+        return
+    # A worker's journal was made when it joined (journal_into) and is only appended to: one frozen
+    # after placing a file, thawed once its run finished or a new run took over (either drops the
+    # workers' journals), makes none anew in the entry (found in CI), its record refused instead.
+    try:
+        fd = os.open(folder / state.journal, os.O_WRONLY | os.O_APPEND)
+    except FileNotFoundError:
+        raise StaleWrite(f"{target}: not journaled, since its run has finished or been taken over (a worker "
+                         "that outlived its run)") from None
+    with state.lock, os.fdopen(fd, "a") as fh:
         fh.write(line + "\n")
 
 
@@ -215,7 +227,10 @@ def journal_into(entries: list[tuple[Path, str]]) -> Iterator[None]:
     mine = [(Path(f), token) for f, token in entries if Path(f) not in _OPEN_ENTRIES]
     name = f"journal-{_process_tag()}.jsonl"
     for folder, token in mine:
-        _OPEN_ENTRIES[folder] = _Open(threading.Lock(), name, token, owner=False)
+        state = _OPEN_ENTRIES[folder] = _Open(threading.Lock(), name, token, owner=False)
+        with suppress(StaleWrite):  # a run already over: the writes are refused one by one
+            _fence((folder, state), folder)
+            (folder / name).touch()  # the only place a worker's journal is made (_journal appends)
     try:
         yield
     finally:

@@ -207,7 +207,9 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_in_the_finished_entry(tmp
     assert killed.returncode == -9
     staged = tmp_path / ".staging" / "dataset" / folder.name
     assert [p.name for p in staged.glob(".half.bin.tmp-*")], "the killed write left its temporary"
-    assert [p.name for p in entry.dir.iterdir()] == [".run-token"], "the temporary was staged outside the entry"
+    inside = sorted(p.name for p in entry.dir.iterdir())
+    assert inside[0] == ".run-token" and len(inside) == 2, "the temporary was staged outside the entry"
+    assert inside[1].startswith("journal-") and not entry.path(inside[1]).read_text(), "the worker's, empty"
     with cache.atomic_path(entry.path("half.bin")) as tmp:  # the task again, on another node
         tmp.write_bytes(b"h" * 10)
     entry.finish(["half.bin"])
@@ -233,6 +235,15 @@ LATE = """if True:
                 sys.stdin.readline()
 
         cache._fence = _fence
+    if pause == ["pause-placed"]:  # frozen once its file is in place, before its journal record
+        journal = cache._journal
+
+        def _journal(*args):
+            print("placed", flush=True)
+            sys.stdin.readline()
+            journal(*args)
+
+        cache._journal = _journal
     if pause == ["no-links"]:  # a file system without hard links (some FUSE and SMB mounts)
         import errno
         import os
@@ -268,7 +279,8 @@ def _paused_write(tmp_path: Path, pause: str) -> tuple[cache.CacheEntry, Path, s
     worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, pause], cwd=ROOT,
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert worker.stdout is not None
-    assert worker.stdout.readline().strip() == {"pause": "checked", "pause-late": "checked twice"}[pause]
+    assert worker.stdout.readline().strip() == {"pause": "checked", "pause-late": "checked twice",
+                                                "pause-placed": "placed"}[pause]
     return first, folder, worker
 
 
@@ -302,6 +314,19 @@ def test_a_write_frozen_past_its_last_check_leaves_the_file_its_rerun_wrote(tmp_
     assert (now.st_ino, now.st_mtime_ns) == (rerun.st_ino, rerun.st_mtime_ns)
     first.finish(["views/late.bin"])
     assert not (tmp_path / ".staging" / "dataset" / folder.name).exists()
+
+
+def test_a_worker_frozen_before_its_journal_record_makes_no_journal_in_the_finished_entry(tmp_path):
+    """A worker frozen between putting its file in place and recording it, thawed once its run has
+    finished the entry (its journals dropped): the record is refused and no journal appears in the
+    finished entry (found in CI, a hung node's worker thawed after a run that backup copies ended)."""
+    first, folder, worker = _paused_write(tmp_path, "pause-placed")
+    assert list(folder.glob("journal-*.jsonl")), "a worker's journal is made when it joins"
+    first.finish(["views/late.bin"])
+    before = sorted(p.name for p in folder.iterdir())
+    out, _ = worker.communicate("go\n", timeout=60)
+    assert "not journaled, since its run has finished" in out
+    assert sorted(p.name for p in folder.iterdir()) == before == ["manifest.json", "views"]
 
 
 def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
