@@ -569,15 +569,15 @@ def _freeze_the_node_mid_run(cluster: Cluster, tiny_dam: Path, tmp_path: Path,
     assert cluster.node is not None
     try:
         node = cluster.node
-        _wait_until(lambda: len(_writers(views).keys() & set(cluster.hosts.tree(node))) >= 2, proc,
-                    poll=0.05)  # until both of the node's tasks have written a view
+        _wait_until(lambda: len({pid for pid, n in _writers(views).items() if n} & set(cluster.hosts.tree(node)))
+                    >= 2, proc, poll=0.05)  # until both of the node's tasks have written a view
         frozen = cluster.hosts.signal_tree(node, signal.SIGSTOP)
         start = time.monotonic()
         views_of = {pid: n for pid, n in _writers(views).items() if pid in frozen}
         # one of the two may have finished its 20 views already: its worker can start seconds before the
         # other's (found in a fresh-clone CI run: 20 and 3 views); the other is then still writing
         writing = [pid for pid, n in views_of.items() if n < 20]
-        assert len(views_of) == 2 and writing, (
+        assert len(views_of) == 2 and all(views_of.values()) and writing, (
             f"{views_of} of {_writers(views)}: the node's two tasks must have written and one must still be "
             f"writing (the run: {proc.poll()})\n" + log.read_text()[-3000:])
         (entry,) = views.iterdir()
@@ -599,8 +599,8 @@ def _freeze_the_node_mid_run(cluster: Cluster, tiny_dam: Path, tmp_path: Path,
 
 def _writers(views: Path) -> dict[int, int]:
     """The Ray workers writing into the dataset entry under ``views``, by process id (from the names
-    of their journals, ``journal-<host>-<pid>-<random>.jsonl``), and the views each has finished (of
-    the 20 of a task)."""
+    of their journals, ``journal-<host>-<pid>-<random>.jsonl``, made as a worker joins), and the
+    views each has finished (of the 20 of a task; none yet for one that has just joined)."""
     found = {}
     for journal in views.glob("*/journal-*.jsonl"):
         with contextlib.suppress(OSError):
