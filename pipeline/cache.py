@@ -229,13 +229,32 @@ def journal_into(entries: list[tuple[Path, str]]) -> Iterator[None]:
     for folder, token in mine:
         state = _OPEN_ENTRIES[folder] = _Open(threading.Lock(), name, token, owner=False)
         with suppress(StaleWrite):  # a run already over: the writes are refused one by one
-            _fence((folder, state), folder)
-            (folder / name).touch()  # the only place a worker's journal is made (_journal appends)
+            _join((folder, state))
     try:
         yield
     finally:
         for folder, _ in mine:
             _OPEN_ENTRIES.pop(folder, None)
+
+
+def _join(held: tuple[Path, _Open]) -> None:
+    """Make a worker's journal in the entry it joins, the only place one is made (``_journal`` only
+    appends), and only while the entry's run holds it: checked before and again after, since a worker
+    frozen between the first check and the file, thawed once its run finished (the workers' journals
+    dropped), would otherwise leave an empty journal in the finished entry."""
+    folder, state = held
+    journal = folder / state.journal
+    _fence(held, folder)
+    try:
+        journal.touch()
+    except FileNotFoundError:  # the folder of a forced run, swapped in meanwhile
+        _fence(held, folder)
+        raise
+    try:
+        _fence(held, folder)
+    except StaleWrite:
+        journal.unlink(missing_ok=True)
+        raise
 
 
 def _staging(folder: Path) -> Path:

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from pipeline import cache
@@ -235,6 +236,17 @@ LATE = """if True:
                 sys.stdin.readline()
 
         cache._fence = _fence
+    if pause == ["pause-join"]:  # frozen as it joins the entry, past the check, before its journal
+        fence, calls = cache._fence, []
+
+        def _fence(*args):
+            fence(*args)
+            calls.append(args)
+            if len(calls) == 1:
+                print("joining", flush=True)
+                sys.stdin.readline()
+
+        cache._fence = _fence
     if pause == ["pause-placed"]:  # frozen once its file is in place, before its journal record
         journal = cache._journal
 
@@ -270,17 +282,19 @@ def _late_write(folder: Path, token: str, *how: str) -> str:
                           capture_output=True, text=True).stdout.strip()
 
 
-def _paused_write(tmp_path: Path, pause: str) -> tuple[cache.CacheEntry, Path, subprocess.Popen]:
-    """A begun entry, its folder, and a worker paused inside its write into it (``pause``: past the
-    first check, or the second), which goes on once sent a line."""
+def _paused_write(tmp_path: Path, pause: str, force: bool = False
+                  ) -> tuple[cache.CacheEntry, Path, subprocess.Popen]:
+    """A begun (``force``: rebuilt) entry, its folder, and a worker paused inside its write into it
+    (``pause``: as it joins, past the first check, the second, or once placed), which goes on once
+    sent a line."""
     first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
-    assert first.begin()
+    assert first.begin(force=force)
     ((folder, token),) = cache.open_entries()
     worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, pause], cwd=ROOT,
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert worker.stdout is not None
     assert worker.stdout.readline().strip() == {"pause": "checked", "pause-late": "checked twice",
-                                                "pause-placed": "placed"}[pause]
+                                                "pause-placed": "placed", "pause-join": "joining"}[pause]
     return first, folder, worker
 
 
@@ -327,6 +341,21 @@ def test_a_worker_frozen_before_its_journal_record_makes_no_journal_in_the_finis
     out, _ = worker.communicate("go\n", timeout=60)
     assert "not journaled, since its run has finished" in out
     assert sorted(p.name for p in folder.iterdir()) == before == ["manifest.json", "views"]
+
+
+@pytest.mark.parametrize("force", [False, True], ids=["resumed", "forced"])
+def test_a_worker_frozen_as_it_joins_makes_no_journal_in_the_finished_entry(tmp_path, force):
+    """A worker frozen as it joins an entry (past the check, before its journal is made), thawed once
+    its run has finished the entry: its journal is dropped again at once, and its write refused. In
+    a forced run the folder it joined has been swapped in meanwhile, and is not made again."""
+    first, folder, worker = _paused_write(tmp_path, "pause-join", force)
+    assert not list(folder.glob("journal-*.jsonl"))
+    first.finish([])
+    out, _ = worker.communicate("go\n", timeout=60)
+    assert worker.returncode == 0, out
+    assert "its run has finished" in out
+    assert folder != first.final_dir and not folder.exists() if force else folder == first.final_dir
+    assert sorted(p.name for p in first.final_dir.iterdir()) == ["manifest.json"]
 
 
 def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
