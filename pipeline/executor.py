@@ -129,15 +129,23 @@ def connected(executor: str, address: str = "") -> Iterator[None]:
 
 
 def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local", address: str = "",
-              device: str = "cpu", cpus: int = 1, backups: bool = True) -> list[R]:
+              device: str = "cpu", cpus: int = 1, backups: bool = True,
+              on_result: Callable[[int, R], None] | None = None) -> list[R]:
     """``fn(task)`` for every task, results in task order: here one after another (``local``), or
     as Ray tasks (``ray``; ``fn`` and the tasks travel by cloudpickle, so closures over paths,
     configs and networks are fine, open devices and files are not). With a CUDA ``device`` each Ray
     task holds a share of one GPU, which it sees as ``cuda:0``; else ``cpus`` CPUs (at most the
     largest node's, so that every task fits somewhere). ``backups=False``: no backup copies
-    (:data:`BACKUP_FACTOR`), for tasks whose time says nothing of the others'."""
+    (:data:`BACKUP_FACTOR`), for tasks whose time says nothing of the others'. ``on_result(k, r)``
+    is called as each task's result arrives, while the others run (so that a driver killed later
+    keeps what it did with the finished ones)."""
     if executor == "local":
-        return [fn(t) for t in tasks]
+        results = []
+        for k, task in enumerate(tasks):
+            results.append(fn(task))
+            if on_result is not None:
+                on_result(k, results[-1])
+        return results
     factor = backup_factor() if backups else 0.0  # a bad setting is an error before the cluster is joined
     with connected(executor, address):
         import ray
@@ -168,7 +176,7 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
         remote = ray.remote(**options)(journaled)
         per = 1 if _is_cuda(device) else int(options["num_cpus"])
         return _gather(ray, lambda k: remote.remote(tasks[k]), len(tasks), where,
-                       lambda: max(1, cluster_slots(executor, device, address) // per), factor)
+                       lambda: max(1, cluster_slots(executor, device, address) // per), factor, on_result)
 
 
 def backup_factor() -> float:
@@ -202,13 +210,14 @@ def overdue(unfinished: Sequence[int], started: dict[int, float], took: Sequence
 
 
 def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slots: Callable[[], int],
-            factor: float) -> list[Any]:
+            factor: float, on_result: Callable[[int, Any], None] | None = None) -> list[Any]:
     """The results of the ``count`` tasks ``submit(k)`` starts, in task order, as they finish (so
     that the bar moves and a failed task stops the run early). A task that runs long while the
     cluster has a free slot (:func:`overdue`) gets one backup copy; the first copy to finish gives
     the result, and the other is cancelled and waited for (:data:`CANCEL_WAIT_S` at most), so that no copy
     writes once the stage finishes its entry. A copy's loss (its node or worker gone, retries spent)
-    ends the run only when no other copy of its task is left."""
+    ends the run only when no other copy of its task is left. ``on_result(k, result)`` is called
+    as task ``k``'s first copy finishes (a cancelled copy of it may still be ending then)."""
     copies = {k: [submit(k)] for k in range(count)}
     task_of = {copies[k][0]: k for k in range(count)}
     results: list[Any] = [None] * count
@@ -247,6 +256,8 @@ def _gather(ray: Any, submit: Callable[[int], Any], count: int, where: str, slot
                 unfinished.remove(k)
                 ran_on[node] += 1
                 bar.update()
+                if on_result is not None:
+                    on_result(k, results[k])
             if factor <= 0 or not took:
                 continue
             n = slots()  # nodes may have joined or died

@@ -61,8 +61,9 @@ def ensure_all(run: Run, scenes: Sequence[SceneConfig], force: bool = False) -> 
     else the driver's cores, as a serial run here would use: the CPU solver's sums follow the
     thread count, so the frames are a serial run's to the bit), or for a GPU on a CUDA run, and gets
     no backup copy (a scene's time says nothing of another's). A task lost with its node runs
-    again and resumes after its last whole frame. A scene that fails (a blow-up) does not keep the
-    others unfinished: their entries are finished, then its error is raised."""
+    again and resumes after its last whole frame. Each scene's entry is finished as its task returns,
+    so a driver killed later keeps it. A scene that fails (a blow-up) does not keep the others
+    unfinished: theirs are finished, then its error is raised (the first to fail, by time)."""
     if run.config.executor != "ray":
         for scene in scenes:
             ensure(run, scene, force)
@@ -91,17 +92,20 @@ def ensure_all(run: Run, scenes: Sequence[SceneConfig], force: bool = False) -> 
             exc.add_note(traceback.format_exc())  # shown with DEEP_SSFR_DEBUG=1
             return exc
 
-    results = run_tasks(one, [(entry.dir, scene) for entry, scene in begun], "ray", run.config.ray_address,
-                        run.device, cpus=threads, backups=False)
     failed = []
-    for (entry, scene), extra in zip(begun, results, strict=True):
+
+    def finished(k: int, extra: dict | Exception) -> None:  # as each scene returns, not once all have
+        entry, scene = begun[k]
         if isinstance(extra, Exception):
             failed.append((scene, extra))
-            continue
+            return
         files = extra.pop("files")
         entry.finish(files, extra.pop("timings"), **extra)
         log.info("simulate %s: %d frames, %.3g particle-steps/s on the cluster -> %s", scene.name, len(files),
                  extra["particle_steps_per_second"], entry.dir)
+
+    run_tasks(one, [(entry.dir, scene) for entry, scene in begun], "ray", run.config.ray_address, run.device,
+              cpus=threads, backups=False, on_result=finished)
     for scene, exc in failed[1:]:  # the first is the stage's error
         log.error("simulate %s: failed too: %s", scene.name, exc)
     if failed:

@@ -132,6 +132,40 @@ def test_a_scene_that_fails_on_ray_leaves_the_others_finished(tiny_dam, tmp_path
         ray.shutdown()
 
 
+def test_each_tasks_result_is_handed_over_as_it_arrives_while_the_others_run(tmp_path):
+    """``run_tasks(on_result=...)`` (what finishes each scene's entry as its simulation returns):
+    the second task waits for the mark the first one's handler leaves, so it ends only if that
+    handler ran while it was still running (else it gives up after 30 s and says so)."""
+    ray = pytest.importorskip("ray")
+    mark = tmp_path / "first-handled"
+
+    def task(k: int) -> bool:  # nested, so that it travels by value
+        import time
+
+        if k == 0:
+            return True
+        end = time.monotonic() + 30
+        while not mark.exists() and time.monotonic() < end:
+            time.sleep(0.05)
+        return mark.exists()
+
+    handled = []
+
+    def handle(k: int, result: bool) -> None:
+        handled.append(k)
+        mark.touch()
+
+    assert run_tasks(lambda k: k * k, [3, 1], on_result=lambda k, r: handled.append((k, r))) == [9, 1]
+    assert handled == [(0, 9), (1, 1)]
+    handled.clear()
+    ray.init(num_cpus=2, include_dashboard=False, configure_logging=False, log_to_driver=False)
+    try:
+        assert run_tasks(task, [0, 1], "ray", on_result=handle) == [True, True]
+        assert handled == [0, 1]
+    finally:
+        ray.shutdown()
+
+
 def evaluation_metrics(root):
     """The evaluate entry's metrics under ``root`` (a data_dir) without their timings."""
     (entry,) = (root / "evaluate").iterdir()
