@@ -526,7 +526,7 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
     there), and the command ends whole. The node's workers,
     thawed once the run has finished and their raylet still frozen, go on with their views, and the
     finished entry gets none of their writes: no file rewritten, no journal, no temporary."""
-    _, changed, thawed_ran, log = _freeze_the_node_mid_run(
+    _, changed, thawed_ran, log, _ = _freeze_the_node_mid_run(
         cluster, tiny_dam, tmp_path, {"RAY_grpc_client_keepalive_timeout_ms": "5000",
                                       "DEEP_SSFR_RAY_BACKUP_FACTOR": "0"})
     assert "backup cop" not in log
@@ -537,28 +537,33 @@ def test_a_frozen_nodes_workers_write_nothing_once_the_run_has_finished(cluster,
 def test_a_hung_nodes_tasks_are_overtaken_by_backup_copies_on_the_head(cluster, tiny_dam, tmp_path):
     """The second node frozen as above, but with the default backup copies and Ray's own 120 s wait
     for a ping's answer, so that no keepalive finds the node's connections dead for over two
-    minutes: once its two tasks have run twice as long as the head's (and 10 s), backup copies of
-    them run on the head's free CPU, the command ends with a serial run's bytes, its cancels of the
-    hung tries holding it up 10 s at most (they never end), and the node's workers, thawed once it
-    has finished, write nothing into the entry. (About 20 s after the freeze here; with copies off
-    the same run ended 150 s after its start, once Ray found the node dead.)"""
-    took, changed, _, log = _freeze_the_node_mid_run(cluster, tiny_dam, tmp_path,
-                                                     {"RAY_grpc_client_keepalive_timeout_ms": "120000"})
-    assert log.count("a backup copy started") == 2 and "ray: 2 backup copies, 2 of them finished first" in log, (
-        log[-3000:])
-    assert "ray: 2 cancelled copies did not end within 10 s (on a hung node?)" in log, log[-3000:]
+    minutes: once its tasks (both, or the one still running when it froze) have run twice as long
+    as the head's (and 10 s), backup copies of them run on the head's free CPU, the command ends
+    with a serial run's bytes, its cancels of the hung tries holding it up 10 s at most (they never
+    end), and the node's workers, thawed once it has finished, write nothing into the entry. (About
+    20 s after the freeze here; with copies off the same run ended 150 s after its start, once Ray
+    found the node dead.)"""
+    took, changed, _, log, hung = _freeze_the_node_mid_run(cluster, tiny_dam, tmp_path,
+                                                           {"RAY_grpc_client_keepalive_timeout_ms": "120000"})
+    # one of the node's two tasks may have ended before the freeze; one that had written its last view
+    # but not yet returned is frozen too, and gets a copy as well
+    started = log.count("a backup copy started")
+    copies = "copy" if started == 1 else "copies"
+    assert hung <= started <= 2 and f"ray: {started} backup {copies}, {started} of them finished first" in log, (
+        hung, log[-3000:])
+    assert f"ray: {started} cancelled {copies} did not end within 10 s (on a hung node?)" in log, log[-3000:]
     assert not changed, changed
     print(f"the run ended {took:.0f} s after the freeze")
 
 
 def _freeze_the_node_mid_run(cluster: Cluster, tiny_dam: Path, tmp_path: Path,
-                             env: dict[str, str]) -> tuple[float, list, bool, str]:
+                             env: dict[str, str]) -> tuple[float, list, bool, str, int]:
     """A dataset run of 60 views over the cluster (its driver's environment ``env`` added), the
     second node frozen once both its tasks have written a view and while one of them, at least, is
     writing, its workers thawed (their raylet still frozen) once the run has ended and given 5 s:
     the seconds from the freeze to the run's end, the entry's files and folders changed after it
-    ended (times and inodes), whether the thawed workers ran, and the driver's log. The serial
-    run's bytes are checked."""
+    ended (times and inodes), whether the thawed workers ran, the driver's log, and how many of the
+    node's tasks were still writing when it froze (one or both). The serial run's bytes are checked."""
     import signal
 
     serial, sharded, views = _sixty_views(cluster, tiny_dam, tmp_path)
@@ -594,7 +599,7 @@ def _freeze_the_node_mid_run(cluster: Cluster, tiny_dam: Path, tmp_path: Path,
     finally:
         _restart_node(cluster, proc)
     _same_exrs(serial, views, 60)
-    return took, sorted(set(after.items()) ^ set(finished.items()))[:5], ran, log.read_text()
+    return took, sorted(set(after.items()) ^ set(finished.items()))[:5], ran, log.read_text(), len(writing)
 
 
 def _writers(views: Path) -> dict[int, int]:
