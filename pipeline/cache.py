@@ -264,6 +264,24 @@ def _staging(folder: Path) -> Path:
     return folder.parent.parent / ".staging" / folder.parent.name / folder.name
 
 
+_MKDIR_TRIES = 20
+"""Each retry of :func:`_make_folder` means another run emptied and dropped a parent in the
+instant between two mkdirs: a handful in a row is already unlikely."""
+
+
+def _make_folder(folder: Path) -> None:
+    """``folder`` and its parents, made again where another run removed an empty parent between
+    two of the steps (a run that finishes an entry of the same stage drops ``.staging/<stage>/``
+    once it is empty: :meth:`CacheEntry._drop_temporaries`)."""
+    for _ in range(_MKDIR_TRIES - 1):
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            return
+        except FileNotFoundError:
+            continue
+    folder.mkdir(parents=True, exist_ok=True)
+
+
 def _place(tmp: Path, target: Path, held: tuple[Path, _Open] | None) -> None:
     """Put a finished temporary at ``target``. A worker links it there, which never replaces a file:
     one frozen between its last check and here, thawed as its run finishes, finds the file its task
@@ -301,7 +319,7 @@ def atomic_path(target: Path) -> Iterator[Path]:
         home, name = target.parent, target.name
     else:  # the path inside the entry in the name, so that two targets of one name stay apart
         home, name = _staging(held[0]), "%".join(where.relative_to(held[0]).parts)
-    home.mkdir(parents=True, exist_ok=True)
+    _make_folder(home)
     tmp = home / f".{name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}"
     try:
         yield tmp
@@ -496,8 +514,16 @@ class CacheEntry:
     def _drop_temporaries(self) -> None:
         """Delete the entry's temporary files, staged (:func:`_staging`) and in the folder: a killed
         run's or worker's, never a live one's, since the caller holds the entry's lock and no write
-        of its own is under way."""
-        shutil.rmtree(_staging(self.dir.resolve()), ignore_errors=True)
+        of its own is under way. The staging folders above it go too once empty: ``rmdir`` drops
+        only an empty folder, so another entry's staged files keep theirs, and a run making its own
+        in between makes the parents again (:func:`_make_folder`)."""
+        staged = _staging(self.dir.resolve())
+        shutil.rmtree(staged, ignore_errors=True)
+        for parent in (staged.parent, staged.parent.parent):  # .staging/<stage>/, then .staging/
+            try:
+                parent.rmdir()
+            except OSError:  # not empty (another entry's writes), or gone already
+                break
         for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
             stale.unlink(missing_ok=True)
 

@@ -218,6 +218,45 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_in_the_finished_entry(tmp
     assert not staged.exists()
 
 
+def test_finished_entries_leave_no_staging_folders_and_keep_another_entrys_staged_writes(tmp_path):
+    """An entry that finishes drops ``.staging/<stage>/`` and ``.staging/`` once they are empty, but
+    not while another entry of the stage has a write staged there, which then lands whole."""
+    a, b = (cache.entry(tmp_path, "dataset", name, {"a": 1}, {}, "cpu", module="pipeline.cache") for name in "ab")
+    assert a.begin() and b.begin()
+    with cache.atomic_path(a.path("view.bin")) as tmp:  # a's write staged while b finishes
+        tmp.write_bytes(b"a" * 10)
+        with cache.atomic_path(b.path("view.bin")) as tmp_b:
+            tmp_b.write_bytes(b"b" * 10)
+        b.finish(["view.bin"])
+        assert tmp.parent == tmp_path / ".staging" / "dataset" / a.dir.name and tmp.exists()
+    a.finish(["view.bin"])
+    assert a.path("view.bin").read_bytes() == b"a" * 10 and b.path("view.bin").read_bytes() == b"b" * 10
+    assert not (tmp_path / ".staging").exists()
+
+
+def test_a_write_whose_staging_parent_another_run_drops_midway_makes_it_again(tmp_path, monkeypatch):
+    """Another run drops the empty ``.staging/<stage>/`` in the instant after this one made it and
+    before it made its entry's folder there (the mkdir then finds no parent): the write makes the
+    parents again and lands."""
+    entry = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert entry.begin()
+    stage_folder, mkdir, dropped = tmp_path / ".staging" / "dataset", os.mkdir, []
+
+    def racing_mkdir(path, *args, **kwargs):
+        mkdir(path, *args, **kwargs)
+        if Path(path) == stage_folder and len(dropped) < 3:  # three times in a row
+            dropped.append(path)
+            os.rmdir(path)
+
+    monkeypatch.setattr(os, "mkdir", racing_mkdir)
+    with cache.atomic_path(entry.path("view.bin")) as tmp:
+        tmp.write_bytes(b"v" * 10)
+    monkeypatch.undo()
+    assert len(dropped) == 3, "the race was not staged"
+    entry.finish(["view.bin"])
+    assert entry.path("view.bin").read_bytes() == b"v" * 10 and not (tmp_path / ".staging").exists()
+
+
 LATE = """if True:
     import sys
     from pathlib import Path
