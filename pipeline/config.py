@@ -488,8 +488,10 @@ class RenderConfig:
     named R, G, B or Y (colour, but also the Y of normals and motion): for review copies."""
     sensor_width_mm: float = Field(36.0, gt=0.0)
     """Sensor width (mm, spanning the image's longer side) of the focal length in the EXR header."""
-    comparison: bool = True
-    """Also write the side-by-side comparison (bilateral | nrf | refined | metaball | mesh)."""
+    comparison: bool = False
+    """Also render bilateral, narrow-range, metaballs and the mesh, and write the side-by-side
+    comparison (bilateral | nrf | refined | metaball | mesh): several times a frame's cost ('make
+    demo' turns it on)."""
 
 
 @dataclass(frozen=True, config=_RULES)

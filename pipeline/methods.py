@@ -24,12 +24,12 @@ from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import input_channels, prepare
 from pipeline.model.inference import Refiner
-from pipeline.model.scale import resize_normal_map
+from pipeline.model.scale import MAX_WORKING_PIXELS, resize_normal_map
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.screen import kernels as K
 from pipeline.shading import Shader
-from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct
+from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct, seen_kernels
 from pipeline.timing import Timings
 from pipeline.vectors import as_float32, host, is_tensor, length, xp
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
@@ -114,12 +114,12 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
            on_device: bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refined unit normals, their fluid mask and depth from a view's screen-space channels.
 
-    The view goes to the refiner's working scale and its output back to the view's size
-    (``pipeline.model.scale``); scale-free inputs need the image's focal length in pixels and the
-    particle radius. Pixels whose predicted normal is shorter than ``threshold`` are dropped as
-    noise (Choi et al., section 3.3), and so are pixels further from the splat's fluid than
-    ``REFINED_REACH_PX`` working pixels (the reference surface is wider than the splat; its depth
-    there is the nearest splat pixel's: ``extend_depth``, here from the same distance transform as
+    The view goes to the refiner's working scale, upscaled only within ``MAX_WORKING_PIXELS``, and
+    its output back to the view's size (``pipeline.model.scale``); scale-free inputs need the
+    image's focal length in pixels and the particle radius. Pixels whose predicted normal is shorter
+    than ``threshold`` are dropped as noise (Choi et al., section 3.3), and so are pixels further from
+    the splat's fluid than ``REFINED_REACH_PX`` working pixels (the reference surface is wider than
+    the splat; its depth there is the nearest splat pixel's: ``extend_depth``, here from the same distance transform as
     the reach when the filtered depth covers the splat, as the screen-space filters make it).
     ``timings`` gets 'prepare', 'network' and 'post'. The input is made ``on_device`` (default: when
     the refiner is not on the CPU): its five maps go there once and become the input in torch, to
@@ -141,7 +141,7 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
         if device_way:  # the filtered depth is on the device already (above)
             source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in (*names.normal, names.raw)}
             source[names.blurred] = blurred
-        view = prepare(source, refiner.spec, focal_px, radius)
+        view = prepare(source, refiner.spec, focal_px, radius, max_pixels=MAX_WORKING_PIXELS)
     with t("network"):
         n = refiner.run(view.inputs, view.fluid)  # 3 x h x w, on the refiner's device (queued on a GPU)
     with t("post"):
@@ -205,7 +205,8 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
 
     ``frame_cache`` (a dict the caller keeps per frame) shares the particles' anisotropic kernels
     between the methods and views of one frame that need them (ellipsoids, refined on ellipsoids,
-    the mesh), the sphere splat of the last view seen with the filters of ``SPHERE_FILTERS`` (set by
+    the mesh; the splat methods alone compute only what their camera sees: ``seen_kernels``), the
+    sphere splat of the last view seen with the filters of ``SPHERE_FILTERS`` (set by
     the caller from ``sphere_filters_of``), whose thickness the metaballs and the mesh shade with.
 
     The refined method on the ellipsoid splat keeps its maps ``on_device`` (default: when the
@@ -261,7 +262,12 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
         return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": sphere_thickness()}
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
-        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels())
+        if "kernels" not in cache and cache.get("seen_kernels", (None,))[0] is not camera:
+            with t("anisotropy"):
+                cache["seen_kernels"] = (camera, seen_kernels(np.asarray(positions, np.float32), radius, filters,
+                                                              camera, launch, ss.device))
+        seen = cache["kernels"] if "kernels" in cache else cache["seen_kernels"][1]
+        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, seen)
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):

@@ -70,6 +70,7 @@ class SequenceRenderer:
         self.on_device = not self.launch.cpu if on_device is None else on_device
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
         self.background = BackgroundRenderer(around, p, p.width, p.height) if p.background == "scene" else None
+        self._backdrop: tuple | None = None  # the last camera's background and its depth
         self.timings = Timings()
 
     def outputs(self, frame: int) -> list[str]:
@@ -85,12 +86,16 @@ class SequenceRenderer:
         """Every method's rendered passes of one frame (the main method timed)."""
         p = self.config.render
         with self.timings("background"):
-            h, w = p.height, p.width
-            if self.background is not None:
-                bg, bg_depth = self.background.render(camera)
-            else:  # nothing behind the fluid: it refracts the environment alone
-                bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
-            bg = self.shader.fill_sky(bg, bg_depth, camera, p, on_device=self.on_device)
+            view = (camera.view.tobytes(), camera.fov_y_deg, camera.width, camera.height)
+            if self._backdrop is None or self._backdrop[0] != view:  # a still camera's is made once
+                h, w = p.height, p.width
+                if self.background is not None:
+                    bg, bg_depth = self.background.render(camera)
+                else:  # nothing behind the fluid: it refracts the environment alone
+                    bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
+                self._backdrop = (view, self.shader.fill_sky(bg, bg_depth, camera, p, on_device=self.on_device),
+                                  bg_depth)
+            bg, bg_depth = self._backdrop[1:]
         shaded, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
         for method in self.methods:
             t = self.timings if method == p.method else Timings()

@@ -113,13 +113,17 @@ def render(
     method: Annotated[Literal[METHODS], typer.Option(help="PATTERN: normal-map method")] = "refined",
     background: Annotated[Literal["scene", "none"], typer.Option(help="PATTERN: 'none': fluid over transparent "
                                                                       "black")] = "scene",
+    compare: Annotated[bool, typer.Option("--compare", help="PATTERN: also render bilateral, narrow-range, "
+                                                            "metaballs and the mesh, for a comparison video "
+                                                            "(about 7x the time)")] = False,
     config: Config = DEFAULT_CONFIG, scene: Scene = "", force: Force = False, verify: Verify = False,
     executor: Executor = "",
 ):
     """Render the config's scenes, or your own particle sequence (PATTERN), to EXR frames and videos."""
     from stages.sequence import Request
 
-    request = [Request(pattern, radius, out, size, frames, camera, up, fps, method, background)] if pattern else []
+    request = [Request(pattern, radius, out, size, frames, camera, up, fps, method, background, compare)] \
+        if pattern else []
     _run("render", StageOptions(config, scene, force, verify, executor), *request,
          module="stages.sequence" if request else "")
 

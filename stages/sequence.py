@@ -47,6 +47,7 @@ class Request:
     fps: float = 30.0
     method: str = "refined"
     background: str = "scene"
+    compare: bool = False
 
 
 def _loaded(opts: StageOptions, req: Request) -> Loaded:
@@ -64,7 +65,7 @@ def _loaded(opts: StageOptions, req: Request) -> Loaded:
     config = load(opts.config).config if Path(opts.config).exists() or opts.config != StageOptions.config \
         else Config(scenes=())
     render = dataclasses.replace(config.render, width=int(size[1]), height=int(size[2]), method=req.method,
-                                 video_fps=req.fps, frame_stride=1, max_frames=0, comparison=True,
+                                 video_fps=req.fps, frame_stride=1, max_frames=0, comparison=req.compare,
                                  background=req.background)
     # absolute: a Ray task on another node starts in a folder of its own
     root = Path(req.out).resolve() / ".cache"
@@ -111,8 +112,9 @@ def main(opts: StageOptions, req: Request) -> None:
     out = Path(req.out)
     for i, number in zip(indices, seq.numbers, strict=True):
         cache.publish(entry.path(f"frames/{frame_name(i, 'exr')}"), out / frame_name(number, "exr"))
-    for video in (f"{name}_{p.method}.mp4", f"{name}_comparison.mp4", f"{name}_comparison_sheet.png"):
+    compared = (f"{name}_comparison.mp4", f"{name}_comparison_sheet.png") if p.comparison else ()
+    for video in (f"{name}_{p.method}.mp4", *compared):
         cache.publish(entry.path(video), out / video)
     write_camera_file(out / "camera.json", cams, list(seq.numbers), up=req.up)
-    log.info("render %s: %d frames in %.1f s -> %s (frame_NNNN.exr, %s_%s.mp4, %s_comparison.mp4, camera.json)",
-             name, len(seq), time.time() - start, out, name, p.method, name)
+    log.info("render %s: %d frames in %.1f s -> %s (frame_NNNN.exr, %s_%s.mp4, %scamera.json)", name, len(seq),
+             time.time() - start, out, name, p.method, f"{name}_comparison.mp4, " if p.comparison else "")

@@ -39,7 +39,7 @@ def test_render_a_users_sequence_in_one_command(tmp_path, capsys):
     _drop(tmp_path, frames=[1, 2, 3, 4, 5, 10, 11])  # 10 and 11 sort before 2 by name
     out = tmp_path / "out"
     argv = ["render", str(tmp_path / "drop_{}.ply"), "--radius", "0.01", "--out", str(out), "--size", "64x64",
-            "--frames", ":5", "--fps", "24"]
+            "--frames", ":5", "--fps", "24", "--compare"]
     assert cli.main(argv) == 0
     exrs = sorted(p.name for p in out.glob("frame_*.exr"))
     assert exrs == [f"frame_{i:04d}.exr" for i in range(1, 6)]
@@ -70,6 +70,10 @@ def test_render_a_users_sequence_in_one_command(tmp_path, capsys):
     ch = read_exr(clear / "frame_0003.exr")
     alpha, rgb = ch["ViewLayer.Combined.A"], np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"])
     assert 0 < (alpha > 0).mean() < 1 and np.all(rgb[:, alpha == 0] == 0)
+    # without --compare only the refined method runs: no comparison frames or video
+    assert not list(clear.glob("*comparison*"))
+    (entry,) = (clear / ".cache" / "render").iterdir()
+    assert not (entry / "compare").exists() and (entry / "preview").exists()
 
     # a second run finds everything cached: nothing rendered again
     before = {p: p.stat().st_mtime_ns for p in (out / ".cache" / "render").rglob("*.exr")}

@@ -47,7 +47,7 @@ def _tiny_checkpoint(tmp_path, splat: str = "sphere") -> str:
 
 
 def test_render_writes_named_exr_sequence_video_and_comparison(tmp_path):
-    config = _config(tmp_path, _tiny_checkpoint(tmp_path))
+    config = _config(tmp_path, _tiny_checkpoint(tmp_path), comparison=True)
     assert cli.main(["render", "--config", config, "--scene", "dam_break"]) == 0
     (entry,) = (tmp_path / "data" / "render").iterdir()
     exrs = sorted((entry / "frames").glob("*.exr"))

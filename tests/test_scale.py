@@ -25,6 +25,21 @@ def test_working_scale_moves_in_half_octaves_to_at_most_the_working_radius():
     assert working_scale(depth, 100.0, 0.05, 100.0) == 4.0  # at most MAX_UPSCALE
 
 
+def test_working_scale_upscales_only_within_the_pixel_budget():
+    depth = np.zeros((100, 200), np.float32)
+    depth[10:30, 50:100] = 2.0  # a 20 x 50 box of particles 2.5 px wide
+    assert working_scale(depth, 100.0, 0.05, 10.0) == 4.0
+    assert working_scale(depth, 100.0, 0.05, 10.0, max_pixels=16_000) == 4.0  # 1000 px x 16 fits
+    assert working_scale(depth, 100.0, 0.05, 10.0, max_pixels=15_999) == 2**1.5  # a half octave less
+    assert working_scale(depth, 100.0, 0.05, 10.0, max_pixels=2_000) == 2**0.5
+    assert working_scale(depth, 100.0, 0.05, 10.0, max_pixels=1_999) == 1.0
+    assert working_scale(depth, 100.0, 0.05, 10.0, max_pixels=10) == 1.0  # never below 1
+    assert working_scale(depth, 100.0, 0.05, 1.0, max_pixels=10) == 2**-1.5  # downscaling: never bounded
+    import torch
+
+    assert working_scale(torch.from_numpy(depth), 100.0, 0.05, 10.0, max_pixels=15_999) == 2**1.5
+
+
 def test_area_average_keeps_fluid_values_and_reports_coverage():
     values = np.zeros((2, 8, 8), np.float32)
     weight = np.zeros((8, 8), np.float32)

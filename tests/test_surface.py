@@ -9,7 +9,8 @@ import pytest
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import DatasetConfig
-from pipeline.surface import anisotropic_kernels, reconstruct, render_maps
+from pipeline.screen import ScreenSpace
+from pipeline.surface import anisotropic_kernels, kernel_ellipsoids, near_front, reconstruct, render_maps, seen_kernels
 
 R = 0.01
 
@@ -274,3 +275,39 @@ def test_kernel_sums_reach_every_kernel_that_covers_a_point(launch, spread):
     got = density_normals(*kernels, points[covered], launch, dev)
     assert covered.sum() > 100
     np.testing.assert_allclose(got, want, atol=2e-4)
+
+
+def test_seen_kernels_splat_the_same_ellipsoids_as_every_particles_anisotropy(launch):
+    """Only the particles within a covariance support under the seen surface get their anisotropy;
+    the ellipsoid splat (depth, mask) is the one of every particle's anisotropy, since the others
+    are interior spheres behind it. A box seen corner-on, with a face at a grazing angle."""
+    rng = np.random.default_rng(3)
+    ax = np.arange(0.0, 0.5, 2 * R)
+    box = np.stack(np.meshgrid(ax, ax[:15], ax, indexing="ij"), -1).reshape(-1, 3)
+    box = (box + rng.normal(scale=0.05 * R, size=box.shape)).astype(np.float32)
+    p = DatasetConfig()
+    ss = ScreenSpace(launch.device)
+    for eye in ((1.2, 0.6, 1.0), (0.25, 0.9, 1.6), (1.5, 0.08, 0.25)):  # the last grazes the top
+        cam = Camera(look_at(eye, (0.25, 0.14, 0.25)), 40.0, 160, 120)
+        seen = near_front(box, R, cam, (2 * p.aniso_kernel_radius + 1) * R, launch, launch.device)
+        assert 0.05 < len(seen) / len(box) < 0.7, len(seen) / len(box)
+        full = anisotropic_kernels(box, R, p, launch, launch.device)
+        part = seen_kernels(box, R, p, cam, launch, launch.device)
+        for a, b in zip(full, part, strict=True):  # the seen particles' kernels are the same numbers
+            np.testing.assert_array_equal(a.numpy()[seen], b.numpy()[seen])
+        ref, got = (ss.splat_ellipsoids(kernel_ellipsoids(k, p), cam) for k in (full, part))
+        np.testing.assert_array_equal(ref.depth > 0, got.depth > 0)
+        assert np.mean(np.abs(ref.depth - got.depth) > 1e-6) < 1e-3
+        # every other particle has the interior kernel: its own place, a sphere of radius r
+        centres, g, extents = (a.numpy() for a in part)
+        own = np.flatnonzero(~np.all(centres == full[0].numpy(), axis=1))
+        assert len(own) > 0.25 * len(box)
+        np.testing.assert_array_equal(centres[own], box[own])
+        np.testing.assert_allclose(g[own], np.broadcast_to(np.eye(3) / (p.aniso_kernel_radius * R), g[own].shape),
+                                   rtol=1e-6)
+
+def test_near_front_sees_nothing_behind_the_camera_or_outside_the_view(launch):
+    x = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [5.0, 0.0, -1.0]], np.float32)
+    cam = Camera(look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0)), 40.0, 64, 64)
+    np.testing.assert_array_equal(near_front(x, R, cam, 0.1, launch, launch.device), [0])
+    assert near_front(np.zeros((0, 3), np.float32), R, cam, 0.1, launch, launch.device).size == 0

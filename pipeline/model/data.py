@@ -142,11 +142,12 @@ class Prepared:
 
 
 def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | None = None,
-            radius: float | None = None, with_target: bool = False) -> Prepared:
+            radius: float | None = None, with_target: bool = False, max_pixels: int = 0) -> Prepared:
     """The generator input of a view's channels (and with ``with_target`` its ``target.N.*``), scaled
-    to the working scale. 'radius' features need the image's focal length (px) and the particle
-    radius (the dataset writes both into every view's header: ``view_geometry``). The channels may
-    be torch tensors on the refiner's device: the input is then made there (``pipeline.vectors``)."""
+    to the working scale (upscaled within ``max_pixels``, 0: no bound). 'radius' features need the
+    image's focal length (px) and the particle radius (the dataset writes both into every view's
+    header: ``view_geometry``). The channels may be torch tensors on the refiner's device: the
+    input is then made there (``pipeline.vectors``)."""
     names = input_channels(spec.splat)
     raw, blurred = channels[names.raw], channels[names.blurred]
     x = xp(raw)
@@ -155,7 +156,8 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
     if spec.features == "radius" and (not focal_px or not radius):
         raise ValueError("scale-free refiner inputs need the focal length in pixels and the particle radius")
     if spec.features == "radius":
-        view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target)
+        view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target,
+                          max_pixels)
     else:
         view = ScaledView(as_float32(normal), raw, blurred, raw > 0, 0.0, 1.0, target)
     if not spec.auxiliary:

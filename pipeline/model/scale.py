@@ -44,14 +44,40 @@ MAX_UPSCALE = 4.0
 """Largest factor a frame of small particles is interpolated up by (its cost grows with its square)."""
 
 
-def working_scale(depth, focal_px: float, radius: float, working_radius_px: float) -> float:
+MAX_WORKING_PIXELS = 1 << 20
+"""Render time: a frame of small particles is interpolated up only while the fluid's bounding box
+stays within this many working pixels (a 1024 x 1024 frame's). Larger frames already show the
+fluid in enough pixels: on 0.3-1M particle frames at 960 x 540 and 1920 x 1080 (particles 1-3 px)
+the upscaled input changed the refined error against the mesh by -0.3 to +0.1 degrees for 2-4x the
+refiner's time (``benchmarks/bench_working_scale.py``)."""
+
+
+def fluid_box_pixels(depth) -> int:
+    """Pixels of the bounding box of a depth map's fluid (0 when it has none)."""
+    fluid = depth > 0
+    rows, cols = (np.flatnonzero(host_flags(fluid.any(axis))) for axis in (1, 0))
+    return 0 if rows.size == 0 else int((rows[-1] - rows[0] + 1) * (cols[-1] - cols[0] + 1))
+
+
+def host_flags(flags) -> np.ndarray:
+    """A row or column of flags on the host (a tensor's come down from its device)."""
+    return flags.cpu().numpy() if is_tensor(flags) else np.asarray(flags)
+
+
+def working_scale(depth, focal_px: float, radius: float, working_radius_px: float, max_pixels: int = 0) -> float:
     """The factor (..., 1/2, 2^-1/2, 1, 2^1/2, 2, ...) that brings the median projected radius into
     (``working_radius_px`` / sqrt 2, ``working_radius_px``], at most ``MAX_UPSCALE`` (1 when there is
-    no fluid or the working radius is 0)."""
+    no fluid or the working radius is 0). With ``max_pixels`` an upscale stops a half octave before
+    the fluid's bounding box would exceed that many pixels (never below 1)."""
     r = median_radius_px(depth, focal_px, radius)
     if working_radius_px <= 0 or r <= 0:
         return 1.0
-    return min(MAX_UPSCALE, 2.0 ** (-math.ceil(2.0 * math.log2(r / working_radius_px) - 1e-9) / 2.0))
+    half_octaves = min(-math.ceil(2.0 * math.log2(r / working_radius_px) - 1e-9), round(2 * math.log2(MAX_UPSCALE)))
+    if max_pixels and half_octaves > 0:
+        box = fluid_box_pixels(depth)
+        while half_octaves > 0 and box * 2.0 ** half_octaves > max_pixels:
+            half_octaves -= 1
+    return 2.0 ** (half_octaves / 2.0)
 
 
 def scaled_size(height: int, width: int, scale: float) -> tuple[int, int]:
@@ -104,11 +130,12 @@ class ScaledView:
 
 
 def scale_view(normals, raw, blurred, focal_px: float, radius: float, working_radius_px: float,
-               target=None) -> ScaledView:
-    """A view (normals 3 x H x W, raw and filtered depth H x W, 0 = empty) at the working scale, with
-    the target normals (3 x H x W, zero vector = empty) averaged alike."""
+               target=None, max_pixels: int = 0) -> ScaledView:
+    """A view (normals 3 x H x W, raw and filtered depth H x W, 0 = empty) at the working scale
+    (upscaled within ``max_pixels``: ``working_scale``), with the target normals (3 x H x W, zero
+    vector = empty) averaged alike."""
     fluid = raw > 0
-    scale = working_scale(raw, focal_px, radius, working_radius_px)
+    scale = working_scale(raw, focal_px, radius, working_radius_px, max_pixels)
     if scale == 1.0:
         return ScaledView(as_float32(normals), as_float32(raw), as_float32(blurred), fluid, focal_px, 1.0,
                           None if target is None else as_float32(target))

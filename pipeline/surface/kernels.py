@@ -14,10 +14,13 @@ from pipeline.sph import POLY6_NORM
 
 wp.set_module_options({"enable_backward": False})
 
+EMPTY_FRONT = wp.constant(1.0e30)
+"""``nearest_front``'s depth of a tile no sphere covers (the silhouette's band counts as one)."""
 
-@wp.kernel
-def compute_anisotropy(
-    offset: int,
+
+@wp.func
+def particle_anisotropy(
+    i: int,
     grid: wp.uint64,
     particle_x: wp.array(dtype=wp.vec3),
     support: float,
@@ -31,13 +34,11 @@ def compute_anisotropy(
     g_out: wp.array(dtype=wp.mat33),
     extent_out: wp.array(dtype=float),
 ):
-    """Smoothed centre, kernel matrix G and bounding radius of each particle's ellipsoid.
+    """Smoothed centre, kernel matrix G and bounding radius of particle i's ellipsoid.
 
     ``ks_scale`` maps covariance eigenvalues to kernel scales so that a full neighbourhood gives
     1 (Yu & Turk's k_s = 1400 does this in their units).
     """
-    k = wp.tid() + offset
-    i = wp.hash_grid_point_id(grid, k)
     xi = particle_x[i]
     # one pass: weighted first and second moments of the offsets r = x_j - x_i (offsets rather than
     # positions keep the float32 moments far from cancellation), cov = E[r r^T] - E[r] E[r]^T
@@ -90,6 +91,134 @@ def compute_anisotropy(
     inv = wp.mat33(1.0 / s0, 0.0, 0.0, 0.0, 1.0 / s1, 0.0, 0.0, 0.0, 1.0 / s2)
     g_out[i] = Q * inv * wp.transpose(Q) * (1.0 / kernel_radius)
     extent_out[i] = kernel_radius * wp.max(s0, wp.max(s1, s2))
+
+
+@wp.kernel
+def compute_anisotropy(
+    offset: int,
+    grid: wp.uint64,
+    particle_x: wp.array(dtype=wp.vec3),
+    support: float,
+    kernel_radius: float,
+    smoothing: float,
+    kr: float,
+    ks_scale: float,
+    kn: float,
+    n_eps: int,
+    centre_out: wp.array(dtype=wp.vec3),
+    g_out: wp.array(dtype=wp.mat33),
+    extent_out: wp.array(dtype=float),
+):
+    """``particle_anisotropy`` of every particle, in the grid's cell order (neighbours in cache)."""
+    i = wp.hash_grid_point_id(grid, wp.tid() + offset)
+    particle_anisotropy(i, grid, particle_x, support, kernel_radius, smoothing, kr, ks_scale, kn, n_eps, centre_out,
+                        g_out, extent_out)
+
+
+@wp.kernel
+def compute_anisotropy_of(
+    offset: int,
+    which: wp.array(dtype=int),
+    grid: wp.uint64,
+    particle_x: wp.array(dtype=wp.vec3),
+    support: float,
+    kernel_radius: float,
+    smoothing: float,
+    kr: float,
+    ks_scale: float,
+    kn: float,
+    n_eps: int,
+    centre_out: wp.array(dtype=wp.vec3),
+    g_out: wp.array(dtype=wp.mat33),
+    extent_out: wp.array(dtype=float),
+):
+    """``particle_anisotropy`` of the particles listed in ``which`` (the others keep their values)."""
+    particle_anisotropy(which[wp.tid() + offset], grid, particle_x, support, kernel_radius, smoothing, kr, ks_scale,
+                        kn, n_eps, centre_out, g_out, extent_out)
+
+
+@wp.kernel
+def nearest_front(
+    offset: int,
+    particle_x: wp.array(dtype=wp.vec3),
+    rotation: wp.mat33,
+    translation: wp.vec3,
+    focal: float,
+    width: int,
+    height: int,
+    tile_px: float,
+    border: int,
+    tiles_x: int,
+    tiles_y: int,
+    radius: float,
+    front_out: wp.array(dtype=float),
+):
+    """A coarse depth buffer of the particles as spheres: each screen tile of ``tile_px`` pixels
+    (``border`` tiles past each image edge) keeps the nearest sphere surface through its centre."""
+    i = wp.tid() + offset
+    v = rotation * particle_x[i] + translation
+    d = -v[2]
+    if d <= radius:
+        return
+    cx = (float(width) * 0.5 + focal * v[0] / d) / tile_px + float(border)
+    cy = (float(height) * 0.5 - focal * v[1] / d) / tile_px + float(border)
+    reach = focal * radius / d / tile_px  # the sphere's projected radius in tiles
+    world_per_tile = tile_px * d / focal
+    for ty in range(wp.max(int(wp.floor(cy - reach)), 0), wp.min(int(wp.floor(cy + reach)) + 1, tiles_y)):
+        for tx in range(wp.max(int(wp.floor(cx - reach)), 0), wp.min(int(wp.floor(cx + reach)) + 1, tiles_x)):
+            dx = float(tx) + 0.5 - cx
+            dy = float(ty) + 0.5 - cy
+            rho2 = (dx * dx + dy * dy) * world_per_tile * world_per_tile
+            if rho2 < radius * radius:
+                wp.atomic_min(front_out, ty * tiles_x + tx, d - wp.sqrt(radius * radius - rho2))
+
+
+@wp.kernel
+def mark_near_front(
+    offset: int,
+    particle_x: wp.array(dtype=wp.vec3),
+    rotation: wp.mat33,
+    translation: wp.vec3,
+    focal: float,
+    width: int,
+    height: int,
+    tile_px: float,
+    border: int,
+    tiles_x: int,
+    tiles_y: int,
+    radius: float,
+    front: wp.array(dtype=float),
+    depth_margin: float,
+    near_out: wp.array(dtype=wp.uint8),
+):
+    """1 for each particle in front of the camera, on the tiles, and within ``depth_margin`` under
+    the sphere surface seen through its tile (``nearest_front``), measured along that surface's
+    normal (from the tiles' depth differences), or next to an empty tile; 0 otherwise."""
+    i = wp.tid() + offset
+    near_out[i] = wp.uint8(0)
+    v = rotation * particle_x[i] + translation
+    d = -v[2]
+    if d <= radius:
+        return
+    tx = int(wp.floor((float(width) * 0.5 + focal * v[0] / d) / tile_px)) + border
+    ty = int(wp.floor((float(height) * 0.5 - focal * v[1] / d) / tile_px)) + border
+    if tx < 0 or ty < 0 or tx >= tiles_x or ty >= tiles_y:
+        return
+    # the depth behind the seen surface, as a distance along that surface's normal: a surface seen
+    # at a grazing angle lies far behind its nearest front along the view ray, yet close to it
+    right = front[ty * tiles_x + wp.min(tx + 1, tiles_x - 1)]
+    left = front[ty * tiles_x + wp.max(tx - 1, 0)]
+    below = front[wp.min(ty + 1, tiles_y - 1) * tiles_x + tx]
+    above = front[wp.max(ty - 1, 0) * tiles_x + tx]
+    if wp.max(wp.max(right, left), wp.max(below, above)) >= EMPTY_FRONT:  # at the silhouette: kept
+        near_out[i] = wp.uint8(1)
+        return
+    world_per_tile = tile_px * d / focal
+    sx = (right - left) / world_per_tile
+    sy = (below - above) / world_per_tile
+    behind = (d - radius - front[ty * tiles_x + tx]) / wp.sqrt(1.0 + 0.25 * (sx * sx + sy * sy))
+    if behind <= depth_margin:
+        near_out[i] = wp.uint8(1)
 
 
 @wp.kernel
