@@ -264,10 +264,10 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
         if "kernels" not in cache and cache.get("seen_kernels", (None,))[0] is not camera:
             with t("anisotropy"):
-                cache["seen_kernels"] = (camera, seen_kernels(np.asarray(positions, np.float32), radius, filters,
-                                                              camera, launch, ss.device))
-        seen = cache["kernels"] if "kernels" in cache else cache["seen_kernels"][1]
-        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, seen)
+                cache["seen_kernels"] = (camera, *seen_kernels(np.asarray(positions, np.float32), radius, filters,
+                                                               camera, launch, ss.device))
+        kernels_here = cache["kernels"] if "kernels" in cache else cache["seen_kernels"][1]
+        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels_here)
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):

@@ -71,6 +71,7 @@ class SequenceRenderer:
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
         self.background = BackgroundRenderer(around, p, p.width, p.height) if p.background == "scene" else None
         self._backdrop: tuple | None = None  # the last camera's background and its depth
+        self._seen: tuple | None = None  # the last frame's camera and the particles seen in front
         self.timings = Timings()
 
     def outputs(self, frame: int) -> list[str]:
@@ -102,6 +103,8 @@ class SequenceRenderer:
             src = normal_source(method, positions, radius, camera, self.config.dataset, self.ss, self.launch,
                                 self.refiner, p.normal_threshold, t, frame_cache, self.metaball, self.on_device)
             shaded[method] = shade_frame(src, bg, bg_depth, camera, p, self.shader, t)
+        seen = frame_cache.get("seen_kernels")
+        self._seen = (seen[0], seen[2]) if seen is not None else None
         return shaded
 
     def motion(self, frame: RenderedFrame, positions: np.ndarray, velocities: np.ndarray | None, radius: float,
@@ -109,6 +112,11 @@ class SequenceRenderer:
         """Fill ``frame.motion``: the particles' screen motion where the fluid shows, the camera's
         elsewhere (``prev``/``nxt``: the neighbouring rendered frames' cameras and frame gaps)."""
         with self.timings("motion"):
+            if self._seen is not None and self._seen[0] is camera:
+                # the particles the anisotropy found in front: the surface shows no other but at a few
+                # pixels of steep edges (0.02% of a test block's), for a fifth of a million's cost
+                positions = np.asarray(positions)[self._seen[1]]
+                velocities = None if velocities is None else np.asarray(velocities)[self._seen[1]]
             if self.on_device:  # each particle's motion made on the device (1M particles: 0.15 s on a host)
                 on = wp.device_to_torch(self.launch.device)
                 positions = torch.as_tensor(positions, device=on)

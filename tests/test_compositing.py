@@ -427,3 +427,29 @@ def test_the_render_loop_kept_on_the_device_writes_the_host_loops_frames(tmp_pat
         for prefix, tol in (("ViewNormal.", 1e-4), ("Combined.", 2e-3)):
             for name in [n for n in host if n.startswith(L + prefix)]:
                 np.testing.assert_allclose(dev[name], host[name], atol=tol, err_msg=name)
+
+
+def test_the_motion_pass_of_the_seen_particles_is_every_particles(tmp_path):
+    """The ellipsoid methods find the particles in front (``seen_kernels``); the motion splat then
+    reads only those, and its pass is the one every particle gives but at a few pixels of steep
+    edges, where a particle under the surface along its normal lies within the splat's depth band."""
+    size = 96
+    p = RenderConfig(width=size, height=size, method="aniso_nrf", comparison=False)
+    config = dataclasses.replace(Config(scenes=()), render=p)
+    camera = Camera(look_at((1.0, 0.9, 1.6), (0.5, 0.3, 0.5)), 40.0, size, size)
+    r = 0.01
+    g = np.arange(-0.15, 0.15 + 1e-9, 2 * r)
+    block = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + (0.5, 0.3, 0.5)
+    x = (block + np.random.default_rng(6).uniform(-0.2, 0.2, block.shape) * r).astype(np.float32)
+    v = np.random.default_rng(7).normal(0.0, 0.5, x.shape).astype(np.float32)  # every particle its own
+    around = Surroundings((0.0, 0.0, 0.0), (1.0, 0.6, 1.0), walls=False)
+    with SequenceRenderer(tmp_path, "block", around, config, "cpu") as renderer:
+        frame = renderer.shade(x, r, camera)["aniso_nrf"]
+        assert renderer._seen is not None and len(renderer._seen[1]) < 0.8 * len(x)
+        renderer.motion(frame, x, v, r, camera, FPS, None, None)
+        seen_only = frame.motion.copy()
+        renderer._seen = None
+        renderer.motion(frame, x, v, r, camera, FPS, None, None)
+    assert np.abs(seen_only).max() > 0.1
+    changed = np.any(seen_only != frame.motion, axis=-1)
+    assert changed.mean() < 1e-3, changed.mean()

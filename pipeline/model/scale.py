@@ -44,9 +44,9 @@ MAX_UPSCALE = 4.0
 """Largest factor a frame of small particles is interpolated up by (its cost grows with its square)."""
 
 
-MAX_WORKING_PIXELS = 1 << 20
+MAX_WORKING_PIXELS = 1 << 19
 """Render time: a frame of small particles is interpolated up only while the fluid's bounding box
-stays within this many working pixels (a 1024 x 1024 frame's). Larger frames already show the
+stays within this many working pixels (half a 1024 x 1024 frame's). Larger frames already show the
 fluid in enough pixels: on 0.3-1M particle frames at 960 x 540 and 1920 x 1080 (particles 1-3 px)
 the upscaled input changed the refined error against the mesh by -0.3 to +0.1 degrees for 2-4x the
 refiner's time (``benchmarks/bench_working_scale.py``)."""

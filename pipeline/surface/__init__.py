@@ -151,19 +151,20 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
 
 
 def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera: Camera, launch: Launcher,
-                 device: str) -> tuple[wp.array, wp.array, wp.array]:
+                 device: str) -> tuple[tuple[wp.array, wp.array, wp.array], np.ndarray]:
     """``anisotropic_kernels`` for what ``camera`` sees: the anisotropy of the particles within one
     covariance support (and a radius) under the seen surface or near the silhouette (``near_front``),
     the interior kernel for every other. A particle deeper than that has a full neighbourhood on the
     seen side, so its ellipsoid is a sphere of radius r anyway and hidden: the ellipsoid splat is the
-    same (tested), at a fifth of the anisotropy's cost for a million particles."""
+    same (tested), at a fifth of the anisotropy's cost for a million particles. Returns the kernels
+    and the indices of the particles that got their anisotropy (every particle seen in front)."""
     support = 2.0 * p.aniso_kernel_radius * radius
     # a surface particle moves inwards by at most the smoothing times its one-sided neighbourhood's
     # mean offset (3/8 of the support for a half ball): a hidden one left a sphere in its place
     # would stand out that far, plus its radius, past the silhouette
     edge_reach = p.aniso_smoothing * 0.375 * support + radius
     seen = near_front(positions, radius, camera, support + radius, launch, device, edge_reach)
-    return anisotropic_kernels(positions, radius, p, launch, device, only=seen)
+    return anisotropic_kernels(positions, radius, p, launch, device, only=seen), seen
 
 
 NEAR_FRONT_TILE_RADII = 1.0
