@@ -145,8 +145,14 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     g = wp.array(np.broadcast_to(np.eye(3, dtype=np.float32) / h, (n, 3, 3)), dtype=wp.mat33, device=device)
     extents = wp.full(n, h, dtype=float, device=device)
     if len(only):
-        which = wp.array(np.ascontiguousarray(only, np.int32), dtype=int, device=device)
-        launch(K.compute_anisotropy_of, len(only), [which, *args, centres, g, extents])
+        # in the grid's cell order, as the full launch runs: each thread's neighbours stay in cache
+        order = wp.empty(n, dtype=int, device=device)
+        launch(K.grid_order, n, [grid.id, order])
+        order = order.numpy()
+        picked = np.zeros(n, bool)
+        picked[only] = True
+        which = wp.array(order[picked[order]], dtype=int, device=device)
+        launch(K.compute_anisotropy_of, len(which), [which, *args, centres, g, extents])
     return centres, g, extents
 
 

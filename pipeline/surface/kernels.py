@@ -138,6 +138,13 @@ def compute_anisotropy_of(
 
 
 @wp.kernel
+def grid_order(offset: int, grid: wp.uint64, order_out: wp.array(dtype=int)):
+    """The particles in the hash grid's cell order (neighbours near each other in memory)."""
+    k = wp.tid() + offset
+    order_out[k] = wp.hash_grid_point_id(grid, k)
+
+
+@wp.kernel
 def nearest_front(
     offset: int,
     particle_x: wp.array(dtype=wp.vec3),
