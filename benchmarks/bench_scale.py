@@ -8,7 +8,8 @@ methods refined, aniso_nrf, nrf and mesh, each in a process of its own: one fram
 (EXR written on its thread while the next frame computes), a still camera. Printed: wall ms per
 frame, ms per step, the process's peak memory, the ratios refined / mesh and refined / nrf, and
 pysplashsurf's reconstruction of the same particles (the mesh alone, not rendered) as the outside
-anchor.
+anchor. Last, the command a user runs (``deep-ssfr render PATTERN``) on ``--sequence`` frames and on
+the first alone: the time to the first frame, and each further frame against the renderer's own.
 
     .venv/bin/python benchmarks/bench_scale.py [--counts 38k 303k 1022k] [--methods ...] [--frames 3]
                                                [--no-4k] [--json out.json]
@@ -110,6 +111,29 @@ def splashsurf_ms(count: str) -> float | None:
     return 1000 * (time.perf_counter() - start)
 
 
+def sequence_overhead(count: str, frames: int, width: int, height: int) -> dict:
+    """The command a user runs, ``deep-ssfr render PATTERN``, on a sequence of ``frames`` split frames
+    (each jittered anew) and on its first frame alone, from a clean output folder each: seconds from
+    process start to the end (import, camera, video and publishing included)."""
+    from pipeline.particles import ParticleFrame, write_particles
+
+    timings = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in range(1, frames + 1):
+            x, v, r = split_frame(SPLITS[count], seed=f)
+            write_particles(Path(tmp) / f"fluid_{f}.ply", ParticleFrame(x, v))
+        for label, last in (("first", 1), ("all", frames)):
+            cmd = [str(Path(sys.executable).parent / "deep-ssfr"), "render", str(Path(tmp) / "fluid_{}.ply"),
+                   "--radius", str(r), "--out", str(Path(tmp) / f"out_{label}"), "--size", f"{width}x{height}",
+                   "--frames", f"1:{last}"]
+            start = time.perf_counter()
+            subprocess.run(cmd, check=True, capture_output=True, cwd=ROOT,
+                           env={**os.environ, "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")})
+            timings[label] = time.perf_counter() - start
+    return {"count": count, "frames": frames, "first_s": timings["first"], "all_s": timings["all"],
+            "per_frame_s": (timings["all"] - timings["first"]) / (frames - 1)}
+
+
 def _child(args: list[str]) -> dict:
     """Run one measurement in a fresh process (its own peak memory) and read its JSON line."""
     out = subprocess.run([sys.executable, __file__, "--one", *args], capture_output=True, text=True, cwd=ROOT,
@@ -130,6 +154,8 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--frames", type=int, default=3, help="timed frames per measurement")
     ap.add_argument("--no-4k", action="store_true", help="skip the 3840 x 2160 frame")
+    ap.add_argument("--sequence", type=int, default=6,
+                    help="frames of the deep-ssfr render run timed against the renderer's own frames (<2: none)")
     ap.add_argument("--json", type=Path, help="also write every figure here")
     ap.add_argument("--one", nargs=4, metavar=("COUNT", "METHOD", "WIDTH", "HEIGHT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -146,6 +172,7 @@ def main() -> None:
         print(f"  {count} {method} {w}x{h} ...", file=sys.stderr, flush=True)
         rows.append(_child([count, method, str(w), str(h), "--frames", str(args.frames)]))
     splash = {c: splashsurf_ms(c) for c in args.counts}
+    runs = [sequence_overhead(c, args.sequence, 1920, 1080) for c in args.counts] if args.sequence > 1 else []
 
     print(f"# bench_scale: {date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"device cpu, {args.frames} frames a measurement\n")
@@ -165,8 +192,18 @@ def main() -> None:
         cells = [f"{r['steps_ms'][k]:.0f}" if k in r["steps_ms"] else "" for k in STEPS]
         print(f"| {r['particles']:,} | {r['method']} | {r['size']} | " + " | ".join(cells) +
               f" | {r['ms_per_frame']:.0f} |")
+    if runs:
+        print(f"\n## `deep-ssfr render PATTERN` (refined, 1920x1080): {args.sequence} frames against the first alone\n")
+        print("| particles | first frame, process start to end (s) | each further frame (s) | renderer's own frame "
+              "(s) | overhead |")
+        print("|---|---|---|---|---|")
+        for run in runs:
+            own = next((r["ms_per_frame"] / 1000 for r in rows if r["count"] == run["count"]
+                        and r["method"] == "refined" and r["size"] == "1920x1080"), float("nan"))
+            print(f"| {SPLITS[run['count']] ** 3 * 4732:,} | {run['first_s']:.1f} | {run['per_frame_s']:.2f} | "
+                  f"{own:.2f} | {100 * (run['per_frame_s'] / own - 1):+.0f}% |")
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "splashsurf_ms": splash}, indent=1))
+        args.json.write_text(json.dumps({"rows": rows, "splashsurf_ms": splash, "sequence": runs}, indent=1))
 
 
 if __name__ == "__main__":

@@ -312,3 +312,6 @@ def test_near_front_sees_nothing_behind_the_camera_or_outside_the_view(launch):
     cam = Camera(look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0)), 40.0, 64, 64)
     np.testing.assert_array_equal(near_front(x, R, cam, 0.1, launch, launch.device), [0])
     assert near_front(np.zeros((0, 3), np.float32), R, cam, 0.1, launch, launch.device).size == 0
+    # a cloud with particles at the lens: its buffer stays the image's size, and the cloud is seen
+    cloud = np.random.default_rng(1).uniform((-0.2, -0.2, -1.0), (0.2, 0.2, -1.01 * R), (5000, 3))
+    assert 0 < len(near_front(cloud.astype(np.float32), R, cam, 0.1, launch, launch.device, 0.05)) <= 5000

@@ -187,8 +187,8 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
 
     The nearest fronts are a coarse depth buffer of the particles as spheres (``nearest_front``),
     so a particle is judged by the surface actually seen at its tile, steep or not. Every particle
-    projected within ``edge_reach`` (m, at the nearest particle's depth) of the fluid's silhouette
-    is kept too: there the surfaces facing away, whatever their depth, border the image."""
+    projected within ``edge_reach`` (m, at the depth of the nearest particles) of the fluid's
+    silhouette is kept too: there the surfaces facing away, whatever their depth, border the image."""
     n = len(positions)
     if n == 0:
         return np.zeros(0, np.int64)
@@ -200,7 +200,10 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
     if not len(depths):
         return np.zeros(0, np.int64)
     tile = max(1.0, NEAR_FRONT_TILE_RADII * camera.focal_px * radius / float(np.median(depths)))
-    border = int(math.ceil(4.0 * camera.focal_px * radius / float(depths.min()) / tile)) + 1
+    # the nearest particles' projected radius in tiles (a particle at the lens is not one to size by)
+    near_radius = camera.focal_px * radius / float(np.percentile(depths, 1)) / tile
+    image_tiles = int(math.ceil(max(camera.width, camera.height) / tile))
+    border = min(int(math.ceil(4.0 * near_radius)) + 1, image_tiles)
     tiles_x = int(math.ceil(camera.width / tile)) + 2 * border
     tiles_y = int(math.ceil(camera.height / tile)) + 2 * border
     x = wp.array(np.ascontiguousarray(positions, np.float32), dtype=wp.vec3, device=device)
@@ -212,7 +215,7 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
         wp.launch(K.nearest_front, n, [0, *view, front], device=device)
     else:
         launch(K.nearest_front, n, [*view, front])
-    band = int(math.ceil(edge_reach * camera.focal_px / float(depths.min()) / tile))
+    band = min(int(math.ceil(near_radius * edge_reach / radius)), image_tiles)
     if band > 0:  # the silhouette's band counts as empty: every particle there is kept
         from scipy.ndimage import binary_dilation
 
