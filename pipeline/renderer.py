@@ -10,7 +10,9 @@ a killed run resumes after the last whole frame. Used by the render stage and th
 
 from __future__ import annotations
 
+import importlib
 import logging
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -69,7 +71,9 @@ class SequenceRenderer:
         self.ss, self.launch = ScreenSpace(wdev), Launcher(wdev)
         self.on_device = not self.launch.cpu if on_device is None else on_device
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
-        self.background = BackgroundRenderer(around, p, p.width, p.height) if p.background == "scene" else None
+        self.around, self.background = around, None  # the rasteriser, made when the first frame needs it
+        if p.background == "scene":  # pyrender's import (about a second) runs beside the first frame's work
+            threading.Thread(target=importlib.import_module, args=("pyrender",), daemon=True).start()
         self._backdrop: tuple | None = None  # the last camera's background and its depth
         self._seen: tuple | None = None  # the last frame's camera and the particles seen in front
         self.timings = Timings()
@@ -86,23 +90,27 @@ class SequenceRenderer:
     def shade(self, positions: np.ndarray, radius: float, camera: Camera) -> dict[str, RenderedFrame]:
         """Every method's rendered passes of one frame (the main method timed)."""
         p = self.config.render
+        sources, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
+        for method in self.methods:
+            t = self.timings if method == p.method else Timings()
+            sources[method] = (t, normal_source(method, positions, radius, camera, self.config.dataset, self.ss,
+                                                self.launch, self.refiner, p.normal_threshold, t, frame_cache,
+                                                self.metaball, self.on_device))
         with self.timings("background"):
             view = (camera.view.tobytes(), camera.fov_y_deg, camera.width, camera.height)
             if self._backdrop is None or self._backdrop[0] != view:  # a still camera's is made once
                 h, w = p.height, p.width
-                if self.background is not None:
+                if p.background == "scene":
+                    if self.background is None:
+                        self.background = BackgroundRenderer(self.around, p, w, h)
                     bg, bg_depth = self.background.render(camera)
                 else:  # nothing behind the fluid: it refracts the environment alone
                     bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
                 self._backdrop = (view, self.shader.fill_sky(bg, bg_depth, camera, p, on_device=self.on_device),
                                   bg_depth)
             bg, bg_depth = self._backdrop[1:]
-        shaded, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
-        for method in self.methods:
-            t = self.timings if method == p.method else Timings()
-            src = normal_source(method, positions, radius, camera, self.config.dataset, self.ss, self.launch,
-                                self.refiner, p.normal_threshold, t, frame_cache, self.metaball, self.on_device)
-            shaded[method] = shade_frame(src, bg, bg_depth, camera, p, self.shader, t)
+        shaded = {method: shade_frame(src, bg, bg_depth, camera, p, self.shader, t)
+                  for method, (t, src) in sources.items()}
         seen = frame_cache.get("seen_kernels")
         self._seen = (seen[0], seen[2]) if seen is not None else None
         return shaded
