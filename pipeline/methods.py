@@ -10,6 +10,7 @@ anisotropic ellipsoids, normals of that depth unfiltered or after the narrow-ran
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,9 +23,9 @@ from pipeline.device import on_torch_stream
 from pipeline.evaluate.metrics import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.metaball.inference import MetaballNet
-from pipeline.model.data import input_channels, prepare
-from pipeline.model.inference import Refiner
-from pipeline.model.scale import MAX_WORKING_PIXELS, resize_normal_map
+from pipeline.model.data import RELIEF_WINDOW_RADII, input_channels, prepare
+from pipeline.model.inference import Refiner, fluid_window
+from pipeline.model.scale import MAX_WORKING_PIXELS, median_radius_px, resize_normal_map, working_scale
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.screen import kernels as K
@@ -112,6 +113,59 @@ class RenderedFrame:
 def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5, focal_px: float | None = None,
            radius: float | None = None, timings: Timings | None = None,
            on_device: bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``refine_view`` of the fluid's part of the view (``refine_window``): the same numbers (tested),
+    without preparing, resampling and masking the empty rest of a wide frame."""
+    names = input_channels(refiner.splat)
+    window = refine_window(refiner, channels[names.raw], channels[names.fluid] > 0, focal_px, radius)
+    if window is None:
+        return refine_view(refiner, channels, threshold, focal_px, radius, timings, on_device)
+    ys, xs = window
+    part = {c: channels[c][ys, xs] for c in (*names.normal, names.raw, names.blurred, names.fluid)}
+    n, mask, depth = refine_view(refiner, part, threshold, focal_px, radius, timings, on_device)
+    x = xp(n)
+    h, w = channels[names.raw].shape
+    full = [x.zeros((h, w, 3), dtype=n.dtype), x.zeros((h, w), dtype=mask.dtype), x.zeros((h, w), dtype=depth.dtype)]
+    if is_tensor(n):
+        full = [a.to(n.device) for a in full]
+    for whole, cut in zip(full, (n, mask, depth), strict=True):
+        whole[ys, xs] = cut
+    return tuple(full)
+
+
+def refine_window(refiner: Refiner, raw, fluid, focal_px: float | None,
+                  radius: float | None) -> tuple[slice, slice] | None:
+    """The part of a view ``refine_view`` gives the same numbers on as on the whole: the fluid's box
+    grown by what reaches a fluid pixel at the working scale (the generator's receptive radius, the
+    relief feature's window, the mask's reach), starting on a multiple of the generator's stride
+    there, and for an area-averaged frame on whole blocks of it. None where no part would do: no
+    fluid, a working scale that is no power of two (its resampling grid depends on the image's size),
+    or a box that is most of the image anyway."""
+    spec = refiner.spec
+    scale = 1.0
+    if spec.features == "radius" and focal_px and radius:
+        scale = working_scale(raw, focal_px, radius, spec.working_radius_px, MAX_WORKING_PIXELS)
+    power = math.log2(scale)
+    block = round(1.0 / scale) if scale < 1.0 else 1
+    h, w = raw.shape
+    if abs(power - round(power)) > 1e-9 or h % block or w % block:
+        return None
+    box = fluid_window(fluid, 0, 1)
+    if box is None:
+        return None
+    r_px = median_radius_px(raw, focal_px, radius) * scale if focal_px and radius else 1.0
+    reach = refiner.margin + refiner.stride + RELIEF_WINDOW_RADII * r_px + REFINED_REACH_PX + 2
+    margin = math.ceil(reach / scale)
+    align = refiner.stride * block  # a stride of working pixels, whole area blocks
+    y0, x0 = (max(0, v - margin) // align * align for v in box[::2])
+    y1, x1 = (min(n, -(-(v + margin) // align) * align) for v, n in ((box[1], h), (box[3], w)))
+    if (y1 - y0) * (x1 - x0) > 0.8 * h * w:
+        return None
+    return slice(y0, y1), slice(x0, x1)
+
+
+def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float = 0.5,
+                focal_px: float | None = None, radius: float | None = None, timings: Timings | None = None,
+                on_device: bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refined unit normals, their fluid mask and depth from a view's screen-space channels.
 
     The view goes to the refiner's working scale, upscaled only within ``MAX_WORKING_PIXELS``, and

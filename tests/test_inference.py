@@ -4,6 +4,7 @@ plain training-time module computes, on the pixels that matter."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from pipeline.model.inference import Refiner, fluid_window
@@ -182,3 +183,48 @@ def test_the_refined_frame_kept_on_the_device_shades_as_the_host_frame():
     fluid = host.mask > 0
     np.testing.assert_allclose(dev.normals[fluid], host.normals[fluid], atol=1e-4)
     np.testing.assert_allclose(dev.beauty, host.beauty, atol=1e-3)
+
+
+@pytest.mark.parametrize("height, scale", [(220, 1.0), (420, 0.5), (110, 2.0), (150, None)])
+def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(height, scale):
+    """``refine`` prepares, resamples and masks only the fluid's part of a view (grown by all that
+    reaches a fluid pixel, on the working scale's grid): bit for bit what the whole view gives, at a
+    working scale of 1, 1/2 and 2. At 2^(1/2) no part is cut (its grid depends on the image's size)."""
+    from pipeline.camera import Camera, look_at
+    from pipeline.config import DatasetConfig
+    from pipeline.methods import refine, refine_view, refine_window
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.data import input_channels
+    from pipeline.model.inference import load_refiner
+    from pipeline.model.scale import MAX_WORKING_PIXELS, working_scale
+    from pipeline.parallel import Launcher
+    from pipeline.screen import ScreenSpace
+    from pipeline.surface import particle_ellipsoids
+    from pipeline.views import screen_space_inputs
+
+    r = 0.004
+    x = (np.random.default_rng(2).normal(size=(2500, 3)) * (0.06, 0.03, 0.05) + (0, 0, -0.5)).astype(np.float32)
+    cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 3 * height, height)
+    refiner = load_refiner(SHIPPED_WEIGHTS)
+    launch, ss = Launcher("cpu"), ScreenSpace("cpu")
+    ch = screen_space_inputs(x, r, cam, DatasetConfig(), ss, filters=("bilateral",))
+    if refiner.splat != "sphere":
+        ch.update(screen_space_inputs(x, r, cam, DatasetConfig(), ss, filters=None,
+                                      ellipsoids=particle_ellipsoids(x, r, DatasetConfig(), launch),
+                                      aniso_filters=("bilateral",)))
+    launch.close()
+    ss.close()
+    names = input_channels(refiner.splat)
+    raw, fluid = ch[names.raw], ch[names.fluid] > 0
+    assert working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, MAX_WORKING_PIXELS) == \
+        (scale or 2**0.5)
+    window = refine_window(refiner, raw, fluid, cam.focal_px, r)
+    assert (window is None) == (scale is None)
+    if window is not None:
+        ys, xs = window
+        assert (ys.stop - ys.start) * (xs.stop - xs.start) < 0.6 * raw.size, "a part, not the whole"
+    part = refine(refiner, ch, 0.5, cam.focal_px, r)
+    whole = refine_view(refiner, ch, 0.5, cam.focal_px, r)
+    assert whole[1].sum() > 100
+    for a, b in zip(part, whole, strict=True):
+        np.testing.assert_array_equal(a, b)
