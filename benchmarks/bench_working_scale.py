@@ -20,7 +20,9 @@ from datetime import date
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 
+wp.config.quiet = True  # the table goes to stdout
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_scale import SPLITS, split_frame  # noqa: E402
 
