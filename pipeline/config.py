@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import re
 import typing
 from pathlib import Path
 from typing import Any, Literal
@@ -701,7 +702,10 @@ def to_dict(obj: Any) -> Any:
 
 class _UniqueKeyLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that rejects a key given twice in one mapping (YAML keeps the last
-    silently, so a duplicated setting would quietly override the first)."""
+    silently, so a duplicated setting would quietly override the first), and reads ``1e-9`` as the
+    number YAML 1.2 says it is (PyYAML's YAML 1.1 wants ``1.0e-9`` and otherwise makes it text)."""
+
+    yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
 
     def construct_mapping(self, node, deep=False):
         seen: dict = {}
@@ -715,6 +719,12 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"))
+
+
 def read_yaml(path: Path) -> Any:
     """Load a YAML file safely (no duplicate keys), turning IO and syntax errors into ConfigError."""
     try:
@@ -722,6 +732,12 @@ def read_yaml(path: Path) -> Any:
             return yaml.load(fh, Loader=_UniqueKeyLoader)  # a SafeLoader: no arbitrary objects
     except FileNotFoundError:
         raise ConfigError(path, "", "file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(path, "", "is a folder, not a YAML file") from None
+    except PermissionError:
+        raise ConfigError(path, "", "cannot be read (permission denied)") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(path, "", f"is not UTF-8 text (byte {exc.start}): save it as UTF-8") from None
     except yaml.YAMLError as exc:
         raise ConfigError(path, "", f"invalid YAML: {exc}".replace("\n", " ")) from None
 

@@ -57,3 +57,21 @@ def test_repository_configs_load():
     for name in ("default.yaml", "paper.yaml"):
         loaded = load(ROOT / "configs" / name)
         assert len(loaded.scenes) >= 6
+
+
+def test_exponents_without_a_point_are_numbers(tiny_dam):
+    """YAML 1.1 (PyYAML) reads ``1e-2`` as text; the loader reads it as YAML 1.2 does, a number."""
+    tiny_dam.write_text(tiny_dam.read_text().replace("particle_radius: 0.0125", "particle_radius: 125e-4"))
+    assert "125e-4" in tiny_dam.read_text()
+    assert load(tiny_dam).config.simulate.particle_radius == 0.0125
+
+
+@pytest.mark.parametrize("damage, words", [
+    (lambda p: p.write_bytes(b"seed: 1\n# caf\xe9\n"), "is not UTF-8 text (byte"),
+    (lambda p: (p.unlink(), p.mkdir()), "is a folder, not a YAML file"),
+])
+def test_an_unreadable_config_file_is_one_line_naming_it(tiny_dam, capsys, damage, words):
+    damage(tiny_dam)
+    code, err = _run(tiny_dam, capsys)
+    assert code == 2 and str(tiny_dam) in err and words in err
+    assert len(err.strip().splitlines()) == 1
