@@ -198,13 +198,14 @@ def _to_y_up(up: str) -> np.ndarray:
 def read_camera_file(path: Path, frames: list[int], width: int, height: int) -> list[Camera]:
     """The cameras of ``frames`` from a camera JSON (``write_camera_file``'s format; the README shows
     a Blender script that exports one): one entry per frame number, or a single entry for all."""
-    import json
 
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = _camera_json(path)
         up = data.get("up", "y")
         rotate = _to_y_up(up)
+        if not isinstance(data["frames"], list) or not all(isinstance(e, dict) for e in data["frames"]):
+            raise ValueError("'frames' must be a list of objects, one per frame")
         entries = {int(e["frame"]) if "frame" in e else None: e for e in data["frames"]}
         if not entries:
             raise ValueError("it lists no frames")
@@ -218,14 +219,44 @@ def read_camera_file(path: Path, frames: list[int], width: int, height: int) -> 
             pose = np.asarray(e["camera_to_world"], np.float64)
             if pose.shape != (4, 4) or not np.isfinite(pose).all():
                 raise ValueError(f"frame {f}: camera_to_world must be a finite 4x4 matrix")
-            cameras.append(camera_from_pose(rotate @ pose, float(e["focal_length_mm"]),
-                                            float(e.get("sensor_width_mm", 36.0)), width, height))
+            if abs(np.linalg.det(pose[:3, :3])) < 1e-9:
+                raise ValueError(f"frame {f}: camera_to_world's rotation is singular (it maps space onto a plane)")
+            lens = {k: float(e.get(k, 36.0 if k == "sensor_width_mm" else float("nan")))
+                    for k in ("focal_length_mm", "sensor_width_mm")}
+            for key, value in lens.items():
+                if not (math.isfinite(value) and value > 0):
+                    raise ValueError(f"frame {f}: {key} must be > 0, got {e.get(key)!r}")
+            cameras.append(camera_from_pose(rotate @ pose, lens["focal_length_mm"], lens["sensor_width_mm"],
+                                            width, height))
         return cameras
     except FileNotFoundError:
         raise FileNotFoundError(f"camera file {path} not found") from None
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         message = f"missing key {exc}" if isinstance(exc, KeyError) else str(exc)
         raise ValueError(f"camera file {path}: {message}") from None
+
+
+def _camera_json(path: Path) -> dict:
+    """A camera file's JSON object (``write_camera_file``'s format)."""
+    import json
+
+    data = json.loads(path.read_text(encoding="utf-8"))
+    if not isinstance(data, dict):
+        raise ValueError(f"must be a JSON object with a 'frames' list (the format of a render's camera.json), "
+                         f"not a {type(data).__name__}")
+    return data
+
+
+def camera_file_size(path: Path) -> tuple[int, int] | None:
+    """The image width and height a camera file records (None when it records none)."""
+    try:
+        data = _camera_json(Path(path))
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"camera file {path}: {exc}") from None
+    width, height = data.get("width"), data.get("height")
+    if isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0:
+        return width, height
+    return None
 
 
 def write_camera_file(path: Path, cameras: list[Camera], frames: list[int], up: str = "y",

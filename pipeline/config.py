@@ -421,9 +421,9 @@ class TrainConfig:
 class RenderConfig:
     """Deferred shading and outputs (stage 4)."""
 
-    width: int = Field(512, ge=8)
+    width: int = Field(512, ge=8, le=16384)
     """Output width (px)."""
-    height: int = Field(512, ge=8)
+    height: int = Field(512, ge=8, le=16384)
     """Output height (px)."""
     camera: Literal["static", "orbit"] = "static"
     """Camera path to render."""

@@ -105,7 +105,8 @@ def render(
                                                        "(out/fluid_{}.vtk); none: the config's scenes")] = None,
     radius: Annotated[float | None, typer.Option(help="PATTERN: particle radius in the files' units")] = None,
     out: Annotated[Path | None, typer.Option(help="PATTERN: folder for frame_NNNN.exr, videos, camera.json")] = None,
-    size: Annotated[str, typer.Option(help="PATTERN: image size WIDTHxHEIGHT")] = "512x512",
+    size: Annotated[str, typer.Option(help="PATTERN: image size WIDTHxHEIGHT (default: the camera file's, "
+                                           "else 512x512)")] = "",
     fps: Annotated[float, typer.Option(help="PATTERN: frames per second")] = 30.0,
     frames: Annotated[str, typer.Option(help="PATTERN: frame numbers START:END, inclusive, either optional")] = ":",
     camera: Annotated[str, typer.Option(help="PATTERN: auto (frame the sequence), orbit, or a camera JSON")] = "auto",

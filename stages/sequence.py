@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from pipeline import cache
-from pipeline.camera import sequence_cameras, write_camera_file
+from pipeline.camera import camera_file_size, sequence_cameras, write_camera_file
 from pipeline.config import Config, ConfigError, Loaded, load
 from pipeline.device import choose_device
 from pipeline.frames import frame_name, load_frame, sequence_bounds
@@ -31,6 +31,8 @@ from stages.render import networks, render_entry
 
 log = logging.getLogger("deep_ssfr")
 MODULE, WHERE = "stages.sequence", "command line"
+MAX_SIDE = 16384
+"""Largest image side a render accepts (px): OpenGL's usual texture limit, 16K."""
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,7 @@ class Request:
     pattern: str
     radius: float | None = None
     out: Path | None = None
-    size: str = "512x512"
+    size: str = ""  # WIDTHxHEIGHT; '': the camera file's, else 512x512
     frames: str = ":"
     camera: str = "auto"
     up: str = "y"
@@ -57,9 +59,13 @@ def _loaded(opts: StageOptions, req: Request) -> Loaded:
         raise ConfigError(WHERE, "--out", "is required with a PATTERN: the folder for the frames and videos")
     if req.camera not in ("auto", "orbit") and not Path(req.camera).is_file():
         raise ConfigError(WHERE, "--camera", f"is auto, orbit or a camera JSON file; {req.camera} does not exist")
-    size = re.fullmatch(r"(\d+)[xX](\d+)", req.size.strip())
+    own = camera_file_size(Path(req.camera)) if req.camera not in ("auto", "orbit") else None
+    text = req.size or (f"{own[0]}x{own[1]}" if own else "512x512")  # --size, else the camera file's
+    size = re.fullmatch(r"(\d+)[xX](\d+)", text.strip())
     if not size or min(int(size[1]), int(size[2])) < 8:
-        raise ConfigError(WHERE, "--size", f"must be WIDTHxHEIGHT, both at least 8, got {req.size!r}")
+        raise ConfigError(WHERE, "--size", f"must be WIDTHxHEIGHT, both at least 8, got {text!r}")
+    if max(int(size[1]), int(size[2])) > MAX_SIDE:
+        raise ConfigError(WHERE, "--size", f"{text} is larger than {MAX_SIDE} pixels a side")
     if not req.fps > 0:
         raise ConfigError(WHERE, "--fps", f"must be > 0, got {req.fps}")
     config = load(opts.config).config if Path(opts.config).exists() or opts.config != StageOptions.config \

@@ -56,10 +56,10 @@ def test_render_a_users_sequence_in_one_command(tmp_path, capsys):
     cameras = json.loads((out / "camera.json").read_text())
     assert [f["frame"] for f in cameras["frames"]] == [1, 2, 3, 4, 5]
 
-    # the exported camera gives the same frames back
+    # the exported camera gives the same frames back, at the size it records
     again = tmp_path / "again"
-    assert cli.main([*argv[:5], str(again), "--size", "64x64", "--frames", ":5", "--camera",
-                     str(out / "camera.json")]) == 0
+    assert cli.main([*argv[:5], str(again), "--frames", ":5", "--camera", str(out / "camera.json")]) == 0
+    assert json.loads((again / "camera.json").read_text())["width"] == 64
     for name in exrs:
         alpha = "ViewLayer.Fluid.A"
         np.testing.assert_allclose(read_exr(again / name)[alpha], read_exr(out / name)[alpha])
@@ -91,7 +91,19 @@ def test_bad_requests_are_one_line_each(tmp_path, capsys):
         (["render", pattern, "--out", o], 2, "--radius: is required: drop_1.ply has no pscale or radius"),
         (["render", pattern, "--radius", "0.01", "--out", o, "--fps", "0"], 2, "--fps: must be > 0"),
         (["render", pattern, "--radius", "0.01", "--out", o, "--camera", "nope.json"], 2, "nope.json does not"),
+        (["render", pattern, "--radius", "0.01", "--out", o, "--size", "100000x100000"], 2,
+         "--size: 100000x100000 is larger than 16384 pixels a side"),
     ]
+    good = {"frame": 1, "camera_to_world": np.eye(4).tolist(), "focal_length_mm": 50.0}
+    for name, body, words in [
+        ("list", [good], "must be a JSON object with a 'frames' list"),
+        ("flat", {"frames": [{**good, "camera_to_world": np.diag([1.0, 1.0, 0.0, 1.0]).tolist()}]},
+         "rotation is singular"),
+        ("lens", {"frames": [{**good, "focal_length_mm": -35}]}, "focal_length_mm must be > 0, got -35"),
+    ]:
+        (tmp_path / f"{name}.json").write_text(json.dumps(body))
+        cases.append((["render", pattern, "--radius", "0.01", "--out", o, "--camera", str(tmp_path / f"{name}.json")],
+                      1, words))
     assert cli.main(["render", pattern, "--radius", "0.01", "--out", o, "--up", "x"]) == 2  # a usage error
     assert "'x' is not one of 'y', 'z'" in capsys.readouterr().err
     for argv, code, words in cases:
