@@ -89,7 +89,9 @@ def main(opts: StageOptions, req: Request) -> None:
     radius = req.radius if req.radius is not None else seq.median_radius(req.up)
     if radius is None or not radius > 0:
         raise ConfigError(WHERE, "--radius", f"must be > 0, got {req.radius}" if req.radius is not None else
-                          f"is required: {seq.paths[0].name} has no pscale or radius attribute")
+                          f"is required: {seq.paths[0].name} has no pscale or radius attribute" if radius is None
+                          else f"is required: the median pscale or radius of {seq.paths[0].name} is {radius:g}, "
+                               f"not a size")
     name, files = seq.name, [(str(f), os.path.getsize(f), os.path.getmtime(f)) for f in seq.paths]
     sim = cache.entry(run.data_dir, "simulate", name, {"files": files, "radius": radius, "fps": req.fps,
                                                        "up": req.up}, {}, run.device, MODULE)

@@ -111,6 +111,11 @@ def test_bad_requests_are_one_line_each(tmp_path, capsys):
         assert cli.main(argv) == code, argv
         line = _one_line(capsys.readouterr().err)
         assert words in line, line
+    zeros = tmp_path / "zeros_1.ply"
+    write_particles(zeros, ParticleFrame(np.zeros((4, 3), np.float32), None, np.zeros(4, np.float32)))
+    assert cli.main(["render", str(zeros), "--out", o]) == 2
+    assert "--radius: is required: the median pscale or radius of zeros_1.ply is 0" in \
+        _one_line(capsys.readouterr().err)
     (tmp_path / "drop_3.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 5\n")
     assert cli.main(["render", pattern, "--radius", "0.01", "--out", str(tmp_path / "o")]) == 1
     assert "drop_3.ply" in _one_line(capsys.readouterr().err)

@@ -136,6 +136,15 @@ def test_ply_cut_in_its_header_is_reported(tmp_path, body):
         read_particles(tmp_path / "cut.ply")
 
 
+@pytest.mark.parametrize("count", [b"-3", b"many", b"2 7"])
+def test_ply_with_a_vertex_count_that_is_no_count_is_reported(tmp_path, count):
+    body = b"ply\nformat binary_little_endian 1.0\nelement vertex " + count + \
+        b"\nproperty float x\nproperty float y\nproperty float z\nend_header\n" + bytes(36)
+    (tmp_path / "odd.ply").write_bytes(body)
+    with pytest.raises(ParticleFormatError, match=r"odd\.ply: element line needs a name and a count of 0 or more"):
+        read_particles(tmp_path / "odd.ply")
+
+
 def test_vtu_cut_or_garbled_is_reported(tmp_path):
     x = np.random.default_rng(6).normal(size=(20, 3))
     meshio.write(tmp_path / "f.vtu", meshio.Mesh(x, [("vertex", np.arange(20)[:, None])]))

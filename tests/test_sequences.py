@@ -140,10 +140,18 @@ def test_glob_number_is_the_whole_digit_run_around_the_wildcard(tmp_path):
         find_sequence(tmp_path / "other" / "*_f_8.xyz")
 
 
-def test_plain_path_is_a_one_frame_sequence(tmp_path):
+def test_plain_path_is_frame_one_whatever_digits_its_name_holds(tmp_path):
+    """A file's name may hold a particle count or a version (octo_880k.vtk): only a pattern's {} or
+    wildcards say where a frame number stands."""
     write_sequence(tmp_path, "xyz", numbers=(9,))
-    seq = find_sequence(tmp_path / "f_9.xyz")
-    assert seq.numbers == (9,) and len(seq) == 1 and seq.missing == ()
+    (tmp_path / "f_9.xyz").rename(tmp_path / "octo_880k.xyz")
+    seq = find_sequence(tmp_path / "octo_880k.xyz")
+    assert seq.numbers == (1,) and len(seq) == 1 and seq.missing == ()
+
+
+def test_a_folder_as_the_pattern_says_how_to_name_its_files(tmp_path):
+    with pytest.raises(ParticleSequenceError, match=r"is a folder: give its files, e\.g\. .*\*\.vtk"):
+        find_sequence(tmp_path)
 
 
 def test_gaps_are_reported_and_logged_compactly(tmp_path, caplog):

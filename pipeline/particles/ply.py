@@ -50,6 +50,8 @@ def read(path: Path) -> ParticleFrame:
         if parts[0] == "format":
             fmt = parts[1]
         elif parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise ParticleFormatError(f"{path}: element line needs a name and a count of 0 or more: {line!r}")
             elements.append((parts[1], int(parts[2]), []))
         elif parts[0] == "property":
             if not elements:

@@ -105,7 +105,8 @@ class ParticleSequence:
 
 
 def find_sequence(pattern: str | Path, start: int | None = None, end: int | None = None) -> ParticleSequence:
-    """The frames matching ``pattern`` (``{}`` placeholder, glob or one path), numbered ``start`` to ``end``."""
+    """The frames matching ``pattern`` (``{}`` placeholder, glob or one path, which is frame 1), numbered
+    ``start`` to ``end``."""
     pattern = str(pattern)
     matches = _match(pattern)
     if not matches:
@@ -182,10 +183,11 @@ def _match(pattern: str) -> list[tuple[int, Path]]:
         return [(_glob_frame_number(pattern, wildcards, Path(c).name), Path(c))
                 for c in glob.glob(pattern) if Path(c).is_file()]
     path = Path(pattern)
-    if not path.is_file():
-        return []
-    runs = _DIGITS.findall(path.name[: len(path.name) - len(path.suffix)])
-    return [(int(runs[-1]) if runs else 0, path)]
+    if path.is_dir():
+        raise ParticleSequenceError(f"{pattern} is a folder: give its files, e.g. {path / '*.vtk'} or "
+                                    f"{path / 'fluid_{}.vtk'} ({{}} stands for the frame number)")
+    # one named file is frame 1: digits in a name need not be a frame number (octo_880k.vtk)
+    return [(1, path)] if path.is_file() else []
 
 
 def _wildcard_regex(name: str) -> re.Pattern[str]:
