@@ -778,6 +778,16 @@ def load_scene(path: Path) -> SceneConfig:
         scene = dataclasses.replace(scene, source=dataclasses.replace(scene.source, pattern=str(pattern)))
     if scene.source is None and not scene.fluid and not scene.emitters:
         raise ConfigError(path, "fluid", "a simulated scene needs fluid shapes or emitters")
+    if any(a >= b for a, b in zip(scene.domain_lo, scene.domain_hi, strict=True)):
+        raise ConfigError(path, "domain_hi", f"must exceed domain_lo {list(scene.domain_lo)} on every axis, "
+                          f"got {list(scene.domain_hi)}")
+    for i, shape in enumerate(scene.fluid):  # the seeding would clip it to the container without a word
+        lo, hi = ((shape.lo, shape.hi) if shape.shape == "box" else
+                  ([c - shape.radius for c in shape.center], [c + shape.radius for c in shape.center]))
+        if any(a < d - 1e-9 for a, d in zip(lo, scene.domain_lo, strict=True)) or \
+                any(b > d + 1e-9 for b, d in zip(hi, scene.domain_hi, strict=True)):
+            raise ConfigError(path, f"fluid[{i}]", f"reaches {list(lo)}..{list(hi)}, outside the domain "
+                              f"{list(scene.domain_lo)}..{list(scene.domain_hi)}; move it inside or widen the domain")
     return scene
 
 

@@ -75,3 +75,22 @@ def test_an_unreadable_config_file_is_one_line_naming_it(tiny_dam, capsys, damag
     code, err = _run(tiny_dam, capsys)
     assert code == 2 and str(tiny_dam) in err and words in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_fluid_body_outside_its_domain_names_the_scene_file(tiny_dam):
+    scene_file = tiny_dam.parent / "scenes" / "tiny_dam.yaml"
+    _edit(scene_file, lambda s: s["fluid"][0].update(hi=[0.2, 0.9, 0.3]))  # above the 0.5 m domain
+    with pytest.raises(ConfigError, match=r"fluid\[0\]: reaches .* outside the domain") as err:
+        load(tiny_dam)
+    assert str(scene_file) in str(err.value)
+    _edit(scene_file, lambda s: (s["fluid"][0].update(hi=[0.2, 0.3, 0.3]), s.update(domain_hi=[0.6, 0.0, 0.3])))
+    with pytest.raises(ConfigError, match=r"domain_hi: must exceed domain_lo"):
+        load(tiny_dam)
+
+
+def test_frames_that_cannot_fit_on_the_disk_are_refused_before_the_first(tiny_dam, capsys):
+    _edit(tiny_dam, lambda b: b["simulate"].update(frames=10**12))
+    code, err = _run(tiny_dam, capsys)
+    assert code != 0 and "simulate.frames: 1,000,000,000,000 more frames of scene 'tiny_dam'" in err
+    assert "GB free; lower simulate.frames" in err and len(err.strip().splitlines()) == 1
+    assert not list((tiny_dam.parent / "data").rglob("frame_*.npz"))

@@ -56,16 +56,37 @@ def import_sequence(folder: Path, name: str, files: list[Path], radius: float, f
             "particles_max": n_max}
 
 
+FRAME_BYTES_PER_PARTICLE = 24
+"""A cached frame's bytes per particle: float32 positions and velocities (plus a small header)."""
+
+
+def check_disk(folder: Path, name: str, frames: int, particles: int) -> None:
+    """Refuse, before the first frame, a run whose frames would not fit on the cache's disk
+    (``particles``: the scene's initial count, so emitters' particles are not foreseen)."""
+    import shutil
+
+    need = frames * (particles * FRAME_BYTES_PER_PARTICLE + 1024)
+    free = shutil.disk_usage(folder).free
+    if need > free:
+        raise ValueError(f"simulate.frames: {frames:,} more frames of scene {name!r} ({particles:,} particles) need "
+                         f"about {need / 1e9:.3g} GB, but {folder} has {free / 1e9:.3g} GB free; lower "
+                         f"simulate.frames or free some space")
+
+
 def simulate_sequence(folder: Path, scene: SceneConfig, params: SimulateConfig, device: str, seed: int) -> dict:
     """Run PBF for ``params.frames`` frames (resuming after the last whole one on disk); returns the
     manifest's extra fields. ``device`` is a Warp device."""
     from pipeline.sim.pbf import PBFSolver, PendingFrame, SimulationError
+    from pipeline.sim.seeding import initial_particle_estimate
 
     folder = Path(folder)
     write_sequence_info(folder, SequenceInfo(scene.name, params.frames, params.particle_radius, params.rest_density,
                                              params.fps, scene.domain_lo, scene.domain_hi, "pbf"))
-    solver = PBFSolver(scene, params, device, seed=seed)
     done = completed_frames(folder, params.frames)
+    # before the solver, whose arrays an absurd frame count with emitters would size too
+    check_disk(folder, scene.name, params.frames - done,
+               max(1, round(initial_particle_estimate(scene, params.particle_radius))))
+    solver = PBFSolver(scene, params, device, seed=seed)
     if done:
         x, v = load_frame(folder / frame_name(done))
         solver.set_state(x, v, done * params.substeps)
