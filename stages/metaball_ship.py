@@ -7,6 +7,7 @@ and the metaball config it was trained with) over ``pipeline/weights/metaball.pt
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import sys
@@ -59,7 +60,8 @@ def main(opts: StageOptions, out: str = "") -> None:
     curve = Path(out) / "metaball_loss_curve.png" if out else ROOT / "docs" / "metaball_loss_curve.png"
     with cache.atomic_path(weights) as tmp:
         torch.save({k: state[k] for k in ("generator", "generator_args", "config", "epoch", "metrics")}, tmp)
-    cache.write_json_atomic(weights.with_suffix(".json"), card(run, entry, state, history))
+    digest = hashlib.sha256(weights.read_bytes()).hexdigest()  # checked on every load
+    cache.write_json_atomic(weights.with_suffix(".json"), {**card(run, entry, state, history), "sha256": digest})
     metaball_curves(curve, history)
     log.info("metaball ship: epoch %d of %s (validation %.2f deg) -> %s (%.1f MB)", state["epoch"], entry.dir,
              state["metrics"]["mean_deg"], weights, weights.stat().st_size / 2**20)

@@ -16,7 +16,7 @@ from pipeline.camera import camera_for_frame
 from pipeline.config import SceneConfig, to_dict
 from pipeline.frames import frame_name, load_frame, read_sequence_info, select_frames
 from pipeline.model import SHIPPED_WEIGHTS
-from pipeline.model.inference import load_weights
+from pipeline.model.inference import checked_digest, load_weights
 from pipeline.renderer import COMPARED, render_sequence
 from pipeline.shading.background import Surroundings
 from stages import simulate
@@ -51,6 +51,7 @@ def load_metaball(run: Run):
         path = metaball_train.ensure(run).path("best.pt")
     else:
         path = SHIPPED_METABALL if choice == "shipped" else Path(choice)
+    checked_digest(path)  # the card's record of these weights
     return MetaballNet(path, run.device), cache.file_hash(path)[:12]
 
 

@@ -8,6 +8,7 @@ replaced in place: every clone carries the repository's history.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import shutil
@@ -76,7 +77,8 @@ def main(opts: StageOptions, out: str = "") -> None:
     curve = Path(out) / "loss_curve.png" if out else ROOT / "docs" / "loss_curve.png"
     with cache.atomic_path(weights) as tmp:
         torch.save(shipped, tmp)
-    cache.write_json_atomic(weights.with_suffix(".json"), card(run, entry, state))
+    digest = hashlib.sha256(weights.read_bytes()).hexdigest()  # checked on every load
+    cache.write_json_atomic(weights.with_suffix(".json"), {**card(run, entry, state), "sha256": digest})
     with cache.atomic_path(curve) as tmp:
         shutil.copyfile(entry.path("loss_curve.png"), tmp)
     log.info("ship: epoch %d of %s (held-out mean %.2f deg) -> %s (%.1f MB)", state["epoch"], entry.dir,

@@ -228,3 +228,23 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     assert whole[1].sum() > 100
     for a, b in zip(part, whole, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_weights_that_are_not_the_ones_their_card_records_are_refused(tmp_path):
+    """Random bytes inside a checkpoint can still load as numbers; the card's SHA-256 catches them."""
+    import shutil
+
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.inference import load_weights
+
+    pt, card = tmp_path / "refiner.pt", tmp_path / "refiner.json"
+    shutil.copyfile(SHIPPED_WEIGHTS, pt)
+    shutil.copyfile(SHIPPED_WEIGHTS.with_suffix(".json"), card)
+    assert load_weights(pt)[1] == load_weights(SHIPPED_WEIGHTS)[1]
+    data = bytearray(pt.read_bytes())
+    data[len(data) // 2: len(data) // 2 + 64] = np.random.default_rng(0).integers(0, 256, 64, np.uint8).tobytes()
+    pt.write_bytes(bytes(data))
+    with pytest.raises(RuntimeError, match=r"refiner\.pt are not the ones their card refiner\.json records"):
+        load_weights(pt)
+    card.unlink()  # a checkpoint without a card (a trained one) is taken as it is
+    load_weights(pt)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -117,15 +118,35 @@ def load_refiner(path, device: str | torch.device = "cpu") -> Refiner:
 
 
 
+def checked_digest(path: Path) -> str:
+    """The SHA-256 of a weights file, checked against the one its card (``<name>.json`` beside it,
+    written when the weights were shipped) records: damaged or swapped weights load as numbers
+    all the same, and would change every frame without a word."""
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    card = Path(path).with_suffix(".json")
+    if card.is_file():
+        try:
+            recorded = json.loads(card.read_text(encoding="utf-8")).get("sha256")
+        except (ValueError, AttributeError):
+            raise RuntimeError(f"the card {card} of the weights {path} is not a JSON object; restore it") from None
+        if recorded is not None and recorded != digest:
+            raise RuntimeError(f"the weights {path} are not the ones their card {card.name} records (SHA-256 "
+                               f"{digest[:12]}, card {str(recorded)[:12]}): restore them (git checkout {path}) or "
+                               f"ship them again")
+    return digest
+
+
 def load_weights(path: Path, device: str | torch.device = "cpu") -> tuple[Refiner, str]:
     """A refiner from a checkpoint file and a short content hash of it (for cache keys); a missing
-    or unreadable file raises ``FileNotFoundError`` / ``RuntimeError`` naming it."""
+    or unreadable file, or one its card disowns (``checked_digest``), raises ``FileNotFoundError`` /
+    ``RuntimeError`` naming it."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no generator checkpoint at {path}; run `make train` and set render.weights to "
                                 "'trained' or a checkpoint path, or restore the shipped weights")
+    digest = checked_digest(path)
     try:
         refiner = load_refiner(path, device)
     except Exception as exc:
         raise RuntimeError(f"cannot load generator checkpoint {path} ({exc})") from None
-    return refiner, hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+    return refiner, digest[:12]
