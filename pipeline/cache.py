@@ -535,9 +535,12 @@ class CacheEntry:
             path = self.dir / name
             if not path.exists():
                 bad.append((name, "missing"))
-            elif path.stat().st_size != want["size"]:
-                bad.append((name, f"{path.stat().st_size} bytes, {want['size']} recorded"))
-            elif VERIFY_HASHES and file_hash(path) != want["blake2b"]:
+                continue
+            stat = path.stat()
+            touched = "mtime_ns" in want and stat.st_mtime_ns != want["mtime_ns"]  # written to since: hash it
+            if stat.st_size != want["size"]:
+                bad.append((name, f"{stat.st_size} bytes, {want['size']} recorded"))
+            elif (VERIFY_HASHES or touched) and file_hash(path) != want["blake2b"]:
                 bad.append((name, "content differs from the recorded hash"))
         for name, why in bad:
             log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
@@ -553,8 +556,7 @@ class CacheEntry:
             "key": self.key,
             **self.meta,
             "files": sorted(files),
-            "checks": {f: {"size": (self.dir / f).stat().st_size, "blake2b": file_hash(self.dir / f)}
-                       for f in sorted(files)},
+            "checks": {f: _check_of(self.dir / f) for f in sorted(files)},
             "timings": timings or {},
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
             **extra,
@@ -591,17 +593,25 @@ def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str]
     return CacheEntry(Path(root), stage, name, make_key(meta), meta)
 
 
+def _check_of(path: Path) -> dict[str, Any]:
+    """What a manifest records of an output: size and modification time (checked on every reuse; a
+    changed time has the file hashed) and its BLAKE2 hash."""
+    stat = path.stat()
+    return {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "blake2b": file_hash(path)}
+
+
 def publish(source: Path, target: Path) -> None:
-    """Make a finished cache file appear at ``target`` (a user's output folder): a hard link when
-    both are on one file system, else a copy; atomic either way."""
-    target = Path(target)
+    """Copy a finished cache file to ``target`` (a user's output folder), atomically: the user's file
+    is their own, so editing or damaging it leaves the cache whole, and the other way round. A
+    target with the source's size and modification time (a copy made before) is left as it is."""
+    source, target = Path(source), Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
+    have, want = (target.stat() if target.exists() else None), source.stat()
+    if have is not None and (have.st_size, have.st_mtime_ns) == (want.st_size, want.st_mtime_ns):
+        return
     tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}")
     try:
-        try:
-            os.link(source, tmp)
-        except OSError:
-            shutil.copyfile(source, tmp)
+        shutil.copy2(source, tmp)  # the time too, so an untouched copy is recognised next time
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)

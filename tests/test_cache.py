@@ -453,3 +453,40 @@ def test_cache_ls_lists_entries_only_and_clean_drops_the_staged_temporaries(tiny
     assert listed[1].startswith("1 entries")
     assert cli.main(["cache", "clean", "--config", str(tiny_dam)]) == 0
     assert not (data / "simulate").exists() and not (data / ".staging").exists()
+
+
+def test_a_same_size_change_to_a_finished_entry_is_caught_without_verify(tmp_path, caplog):
+    """A file written to after its entry finished (its time changed) is hashed on reuse: a change
+    of the same size is found and redone though ``--verify`` is off."""
+    caplog.set_level("WARNING")
+    e = cache.entry(tmp_path, "render", "drop", {"a": 1}, {}, "cpu", "pipeline.cache")
+    assert e.begin()
+    e.path("frame.bin").write_bytes(b"0123456789" * 100)
+    e.path("kept.bin").write_bytes(b"x" * 100)
+    e.finish(["frame.bin", "kept.bin"])
+    assert cache.VERIFY_HASHES is False and e.is_complete()
+    os.utime(e.path("kept.bin"))  # a new time, the same bytes: still whole
+    assert e.is_complete()
+    data = bytearray(e.path("frame.bin").read_bytes())
+    data[500] ^= 1
+    e.path("frame.bin").write_bytes(bytes(data))
+    assert not e.is_complete()
+    assert "frame.bin is damaged (content differs from the recorded hash)" in caplog.text
+    assert not e.path("frame.bin").exists() and e.path("kept.bin").exists()
+
+
+def test_published_files_are_the_users_own(tmp_path):
+    """A published output is a copy: damaging it leaves the cache's file whole; publishing again
+    restores it, and leaves an untouched copy as it is."""
+    source, target = tmp_path / "cache" / "frame.exr", tmp_path / "out" / "frame_0001.exr"
+    source.parent.mkdir()
+    source.write_bytes(b"exr" * 1000)
+    cache.publish(source, target)
+    assert target.read_bytes() == source.read_bytes() and not os.path.samefile(source, target)
+    before = target.stat()
+    cache.publish(source, target)  # an untouched copy is not made again
+    assert (target.stat().st_ino, target.stat().st_mtime_ns) == (before.st_ino, before.st_mtime_ns)
+    target.write_bytes(b"EXR" * 1000)  # the user's edit, the same size
+    assert source.read_bytes() == b"exr" * 1000
+    cache.publish(source, target)
+    assert target.read_bytes() == source.read_bytes()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 
 import numpy as np
 import pytest
@@ -131,8 +132,9 @@ def test_a_corrupt_upstream_file_names_the_command_that_rebuilds_it(tiny_dam, ca
     tiny_dam.write_text(yaml.safe_dump(body))
     assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
     (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
-    size = (entry / "frame_0003.npz").stat().st_size
-    (entry / "frame_0003.npz").write_bytes(b"g" * size)  # same size: only a hash would tell
+    stat = (entry / "frame_0003.npz").stat()
+    (entry / "frame_0003.npz").write_bytes(b"g" * stat.st_size)  # same size and time: only a hash would tell
+    os.utime(entry / "frame_0003.npz", ns=(stat.st_atime_ns, stat.st_mtime_ns))
     capsys.readouterr()
     assert cli.main(["dataset", "--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
@@ -242,7 +244,8 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
 
 
 def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, caplog):
-    """Sizes are checked on every run, hashes with --verify; only the damaged frame is redone."""
+    """Sizes and times are checked on every run (a changed time has the file hashed), every hash
+    with --verify; only the damaged frame is redone."""
     from pipeline.exr import read_exr
 
     caplog.set_level("WARNING")
@@ -263,8 +266,16 @@ def test_a_damaged_output_of_a_finished_entry_is_redone_not_trusted(tiny_dam, ca
     assert (frames / "frame_0001.exr").stat().st_mtime_ns == kept
 
     flipped = bytearray(whole)
-    flipped[-10] ^= 0xFF  # same size, other content
+    flipped[-10] ^= 0xFF  # same size, other content: written to since, so hashed on reuse
     (frames / "frame_0003.exr").write_bytes(bytes(flipped))
+    caplog.clear()
+    assert cli.main(["render", *args]) == 0
+    assert "content differs from the recorded hash" in caplog.text
+    assert (frames / "frame_0003.exr").read_bytes() == whole
+
+    stat = (frames / "frame_0003.exr").stat()  # the same, with its time put back: --verify hashes all
+    (frames / "frame_0003.exr").write_bytes(bytes(flipped))
+    os.utime(frames / "frame_0003.exr", ns=(stat.st_atime_ns, stat.st_mtime_ns))
     caplog.clear()
     assert cli.main(["render", *args]) == 0
     assert "damaged" not in caplog.text and (frames / "frame_0003.exr").read_bytes() == bytes(flipped)

@@ -77,15 +77,16 @@ def simulate_sequence(folder: Path, scene: SceneConfig, params: SimulateConfig, 
     """Run PBF for ``params.frames`` frames (resuming after the last whole one on disk); returns the
     manifest's extra fields. ``device`` is a Warp device."""
     from pipeline.sim.pbf import PBFSolver, PendingFrame, SimulationError
-    from pipeline.sim.seeding import initial_particle_estimate
+    from pipeline.sim.seeding import MAX_INITIAL_PARTICLES, initial_particle_estimate
 
     folder = Path(folder)
     write_sequence_info(folder, SequenceInfo(scene.name, params.frames, params.particle_radius, params.rest_density,
                                              params.fps, scene.domain_lo, scene.domain_hi, "pbf"))
     done = completed_frames(folder, params.frames)
     # before the solver, whose arrays an absurd frame count with emitters would size too
-    check_disk(folder, scene.name, params.frames - done,
-               max(1, round(initial_particle_estimate(scene, params.particle_radius))))
+    estimate = initial_particle_estimate(scene, params.particle_radius)
+    if estimate <= MAX_INITIAL_PARTICLES:  # beyond, the seeding names the particle radius
+        check_disk(folder, scene.name, params.frames - done, max(1, round(estimate)))
     solver = PBFSolver(scene, params, device, seed=seed)
     if done:
         x, v = load_frame(folder / frame_name(done))
