@@ -71,13 +71,21 @@ def load_frame(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return x, v
 
 
-def sequence_bounds(folder: Path, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """The box holding every particle of cached frames 1..count (what a camera must keep in view)."""
+def sequence_bounds(folder: Path, count: int, stray: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The box holding the particles of cached frames 1..count (what a camera must keep in view):
+    every one, or with ``stray`` > 0 the bulk of each frame, leaving out up to that share of its
+    particles beyond each side on each axis (flying droplets, which may then leave the picture)."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for i in range(1, count + 1):
         x, _ = load_frame(Path(folder) / frame_name(i))
-        if len(x):
-            lo, hi = np.minimum(lo, x.min(0)), np.maximum(hi, x.max(0))
+        if not len(x):
+            continue
+        if stray > 0:
+            x = x[:: max(1, len(x) // 200_000)]  # the quantiles of a sample
+            a, b = np.quantile(x, [stray, 1.0 - stray], axis=0, method="inverted_cdf")
+        else:
+            a, b = x.min(0), x.max(0)
+        lo, hi = np.minimum(lo, a), np.maximum(hi, b)
     return lo, hi
 
 

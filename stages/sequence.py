@@ -31,6 +31,9 @@ from stages.render import networks, render_entry
 
 log = logging.getLogger("deep_ssfr")
 MODULE, WHERE = "stages.sequence", "command line"
+STRAY_SHARE = 0.002
+"""The automatic and orbit cameras frame the bulk of each frame: up to this share of its particles
+beyond each side of an axis (a few droplets flung far away) may fall outside the picture."""
 MAX_SIDE = 16384
 """Largest image side a render accepts (px): OpenGL's usual texture limit, 16K."""
 
@@ -99,7 +102,7 @@ def main(opts: StageOptions, req: Request) -> None:
         extra = import_sequence(sim.dir, name, list(seq.paths), radius, req.fps, req.up, req.pattern)
         sim.finish(extra.pop("files"), extra.pop("timings"), **extra)
     indices = list(range(1, len(seq) + 1))
-    lo, hi = sequence_bounds(sim.dir, len(seq))
+    lo, hi = sequence_bounds(sim.dir, len(seq), stray=STRAY_SHARE)
     if not 1e-4 < radius / max(float((hi - lo).max()), 1e-12) < 0.2:
         log.warning("render %s: the radius %.4g does not fit the sequence's extent %.4g; check --radius and the "
                     "units", name, radius, float((hi - lo).max()))

@@ -250,3 +250,21 @@ def test_read_converts_z_up(tmp_path):
     x, y, z = frames[8].positions.T
     np.testing.assert_array_equal(frame.positions, np.stack([x, z, -y], axis=1))
     np.testing.assert_array_equal(frame.radii, frames[8].radii)
+
+
+def test_the_automatic_cameras_box_is_the_fluids_bulk_not_its_stray_droplets(tmp_path):
+    """A few droplets flung far from the fluid would shrink it to a corner of an automatic camera's
+    picture; the bulk box leaves up to 0.2% of a frame's particles out on each side of each axis."""
+    from pipeline.frames import frame_name, save_frame, sequence_bounds
+    from stages.sequence import STRAY_SHARE
+
+    ax = np.arange(0.0, 0.5, 0.02)
+    block = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)  # 15,625 particles
+    for i, shift in enumerate((0.0, 0.1), start=1):
+        droplets = np.array([[30.0, 2.0, 0.0], [-9.0, 0.0, 4.0], [0.2, 40.0, 0.2]]) * (i if shift else 1)
+        save_frame(tmp_path / frame_name(i), np.concatenate([block + shift, droplets]).astype(np.float32), None)
+    lo, hi = sequence_bounds(tmp_path, 2, stray=STRAY_SHARE)
+    np.testing.assert_allclose(lo, 0.0, atol=1e-6)
+    np.testing.assert_allclose(hi, 0.48 + 0.1, atol=1e-6)  # both frames' blocks, no droplet
+    lo, hi = sequence_bounds(tmp_path, 2)
+    assert hi[0] == 60.0 and lo[0] == -18.0 and hi[1] == 80.0  # every particle
