@@ -377,9 +377,13 @@ def write_failure(folder: Path, fallback: str) -> tuple[int, str]:
 
 def redo_hint(path: str | Path) -> str:
     """What to run to rebuild the cache entry holding ``path``: a stage writes
-    ``<data>/<stage>/<scene>-<key>/...``, so the command is ``make <stage> FORCE=1 SCENE=<scene>``."""
+    ``<data>/<stage>/<scene>-<key>/...``, so the command is ``make <stage> FORCE=1 SCENE=<scene>``;
+    ``deep-ssfr render PATTERN --out OUT`` keeps its cache in ``OUT/.cache``, and is run again."""
     parts = Path(path).parts
     for i, part in enumerate(parts[:-1]):
+        if part in STAGES and i > 0 and parts[i - 1] == ".cache":
+            return (f"delete it or run the same `deep-ssfr render PATTERN --out {Path(*parts[:i - 1])}` again "
+                    f"with --force to rebuild it")
         if part in STAGES and i + 1 < len(parts):
             name = parts[i + 1].rsplit("-", 1)[0]
             scene = f" SCENE={name}" if part in ("simulate", "dataset", "render") else ""

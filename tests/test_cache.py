@@ -490,3 +490,10 @@ def test_published_files_are_the_users_own(tmp_path):
     assert source.read_bytes() == b"exr" * 1000
     cache.publish(source, target)
     assert target.read_bytes() == source.read_bytes()
+
+
+def test_the_advice_for_a_damaged_file_is_the_command_that_wrote_it(tmp_path):
+    stage = cache.redo_hint(tmp_path / "data" / "simulate" / "dam_break-0123abcd" / "frame_0003.npz")
+    assert stage == "delete it or run `make simulate FORCE=1 SCENE=dam_break` (with the same CONFIG) to rebuild it"
+    user = cache.redo_hint(tmp_path / "out" / ".cache" / "simulate" / "fluid-0123abcd" / "frame_0003.npz")
+    assert f"`deep-ssfr render PATTERN --out {tmp_path / 'out'}` again with --force" in user and "make" not in user
