@@ -134,7 +134,10 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     x = wp.array(positions, dtype=wp.vec3, device=device)
     grid = hash_grid(x, positions, support / ANISOTROPY_CELLS_PER_SUPPORT, device)
     ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(spacing(radius), support)
-    args = [grid.id, x, support, h, p.aniso_smoothing, p.aniso_kr, ks_scale, p.aniso_kn, p.aniso_neps]
+    a = K.Anisotropy()
+    a.support, a.kernel_radius, a.smoothing, a.kr = support, h, p.aniso_smoothing, p.aniso_kr
+    a.ks_scale, a.kn, a.n_eps = ks_scale, p.aniso_kn, p.aniso_neps
+    args = [grid.id, x, a]
     if only is None:
         centres = wp.zeros(n, dtype=wp.vec3, device=device)
         g = wp.zeros(n, dtype=wp.mat33, device=device)
@@ -207,8 +210,11 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
     tiles_x = int(math.ceil(camera.width / tile)) + 2 * border
     tiles_y = int(math.ceil(camera.height / tile)) + 2 * border
     x = wp.array(np.ascontiguousarray(positions, np.float32), dtype=wp.vec3, device=device)
-    view = [x, wp.mat33(*rotation.ravel()), wp.vec3(*translation), camera.focal_px, camera.width, camera.height,
-            float(tile), border, tiles_x, tiles_y, float(radius)]
+    tiles = K.TileView()
+    tiles.rotation, tiles.translation = wp.mat33(*rotation.ravel()), wp.vec3(*translation)
+    tiles.focal, tiles.width, tiles.height, tiles.radius = camera.focal_px, camera.width, camera.height, float(radius)
+    tiles.tile_px, tiles.border, tiles.tiles_x, tiles.tiles_y = float(tile), border, tiles_x, tiles_y
+    view = [x, tiles]
     front = wp.full(tiles_x * tiles_y, K.EMPTY_FRONT, dtype=float, device=device)
     near = wp.zeros(n, dtype=wp.uint8, device=device)
     if launch.cpu:  # chunks would race on the buffer: atomics are atomic only within one launch

@@ -18,27 +18,56 @@ EMPTY_FRONT = wp.constant(1.0e30)
 """``nearest_front``'s depth of a tile no sphere covers (the silhouette's band counts as one)."""
 
 
+@wp.struct
+class Anisotropy:
+    """Yu & Turk's parameters of ``particle_anisotropy``: the covariance ``support`` and the kernel
+    radius h (m), the centre ``smoothing`` (lambda), the eigenvalue clamps k_r, k_s (as ``ks_scale``,
+    which maps a full neighbourhood to scale 1) and k_n, and N_eps."""
+
+    support: float
+    kernel_radius: float
+    smoothing: float
+    kr: float
+    ks_scale: float
+    kn: float
+    n_eps: int
+
+
+@wp.struct
+class TileView:
+    """A camera (world-to-view ``rotation`` and ``translation``, ``focal`` length and image size in
+    pixels) over screen tiles of ``tile_px`` pixels, ``border`` tiles past each image edge, and the
+    particle ``radius`` (m): what ``nearest_front`` and ``mark_near_front`` share."""
+
+    rotation: wp.mat33
+    translation: wp.vec3
+    focal: float
+    width: int
+    height: int
+    tile_px: float
+    border: int
+    tiles_x: int
+    tiles_y: int
+    radius: float
+
+
 @wp.func
 def particle_anisotropy(
     i: int,
     grid: wp.uint64,
     particle_x: wp.array(dtype=wp.vec3),
-    support: float,
-    kernel_radius: float,
-    smoothing: float,
-    kr: float,
-    ks_scale: float,
-    kn: float,
-    n_eps: int,
+    a: Anisotropy,
     centre_out: wp.array(dtype=wp.vec3),
     g_out: wp.array(dtype=wp.mat33),
     extent_out: wp.array(dtype=float),
 ):
     """Smoothed centre, kernel matrix G and bounding radius of particle i's ellipsoid.
 
-    ``ks_scale`` maps covariance eigenvalues to kernel scales so that a full neighbourhood gives
+    ``a.ks_scale`` maps covariance eigenvalues to kernel scales so that a full neighbourhood gives
     1 (Yu & Turk's k_s = 1400 does this in their units).
     """
+    support = a.support
+    kernel_radius = a.kernel_radius
     xi = particle_x[i]
     # one pass: weighted first and second moments of the offsets r = x_j - x_i (offsets rather than
     # positions keep the float32 moments far from cancellation), cov = E[r r^T] - E[r] E[r]^T
@@ -73,9 +102,9 @@ def particle_anisotropy(
             count += 1
     wrr = wp.mat33(wxx, wxy, wxz, wxy, wyy, wyz, wxz, wyz, wzz)
     mean_r = wr / wsum
-    centre_out[i] = xi + mean_r * smoothing
-    if count - 1 < n_eps:
-        s = kn * kernel_radius
+    centre_out[i] = xi + mean_r * a.smoothing
+    if count - 1 < a.n_eps:
+        s = a.kn * kernel_radius
         g_out[i] = wp.identity(3, dtype=float) * (1.0 / s)
         extent_out[i] = s
         return
@@ -84,10 +113,10 @@ def particle_anisotropy(
     e = wp.vec3()
     wp.eig3(cov, Q, e)
     top = wp.max(e[0], wp.max(e[1], e[2]))
-    floor = top / kr
-    s0 = ks_scale * wp.max(e[0], floor)
-    s1 = ks_scale * wp.max(e[1], floor)
-    s2 = ks_scale * wp.max(e[2], floor)
+    floor = top / a.kr
+    s0 = a.ks_scale * wp.max(e[0], floor)
+    s1 = a.ks_scale * wp.max(e[1], floor)
+    s2 = a.ks_scale * wp.max(e[2], floor)
     inv = wp.mat33(1.0 / s0, 0.0, 0.0, 0.0, 1.0 / s1, 0.0, 0.0, 0.0, 1.0 / s2)
     g_out[i] = Q * inv * wp.transpose(Q) * (1.0 / kernel_radius)
     extent_out[i] = kernel_radius * wp.max(s0, wp.max(s1, s2))
@@ -98,21 +127,14 @@ def compute_anisotropy(
     offset: int,
     grid: wp.uint64,
     particle_x: wp.array(dtype=wp.vec3),
-    support: float,
-    kernel_radius: float,
-    smoothing: float,
-    kr: float,
-    ks_scale: float,
-    kn: float,
-    n_eps: int,
+    a: Anisotropy,
     centre_out: wp.array(dtype=wp.vec3),
     g_out: wp.array(dtype=wp.mat33),
     extent_out: wp.array(dtype=float),
 ):
     """``particle_anisotropy`` of every particle, in the grid's cell order (neighbours in cache)."""
     i = wp.hash_grid_point_id(grid, wp.tid() + offset)
-    particle_anisotropy(i, grid, particle_x, support, kernel_radius, smoothing, kr, ks_scale, kn, n_eps, centre_out,
-                        g_out, extent_out)
+    particle_anisotropy(i, grid, particle_x, a, centre_out, g_out, extent_out)
 
 
 @wp.kernel
@@ -121,20 +143,13 @@ def compute_anisotropy_of(
     which: wp.array(dtype=int),
     grid: wp.uint64,
     particle_x: wp.array(dtype=wp.vec3),
-    support: float,
-    kernel_radius: float,
-    smoothing: float,
-    kr: float,
-    ks_scale: float,
-    kn: float,
-    n_eps: int,
+    a: Anisotropy,
     centre_out: wp.array(dtype=wp.vec3),
     g_out: wp.array(dtype=wp.mat33),
     extent_out: wp.array(dtype=float),
 ):
     """``particle_anisotropy`` of the particles listed in ``which`` (the others keep their values)."""
-    particle_anisotropy(which[wp.tid() + offset], grid, particle_x, support, kernel_radius, smoothing, kr, ks_scale,
-                        kn, n_eps, centre_out, g_out, extent_out)
+    particle_anisotropy(which[wp.tid() + offset], grid, particle_x, a, centre_out, g_out, extent_out)
 
 
 @wp.kernel
@@ -144,56 +159,44 @@ def grid_order(offset: int, grid: wp.uint64, order_out: wp.array(dtype=int)):
     order_out[k] = wp.hash_grid_point_id(grid, k)
 
 
-@wp.kernel
-def nearest_front(
-    offset: int,
-    particle_x: wp.array(dtype=wp.vec3),
-    rotation: wp.mat33,
-    translation: wp.vec3,
-    focal: float,
-    width: int,
-    height: int,
-    tile_px: float,
-    border: int,
-    tiles_x: int,
-    tiles_y: int,
-    radius: float,
-    front_out: wp.array(dtype=float),
-):
-    """A coarse depth buffer of the particles as spheres: each screen tile of ``tile_px`` pixels
-    (``border`` tiles past each image edge) keeps the nearest sphere surface through its centre."""
-    i = wp.tid() + offset
-    v = rotation * particle_x[i] + translation
+@wp.func
+def tile_of(view: TileView, p: wp.vec3) -> wp.vec3:
+    """(column, row, view depth) of a world point, its column and row in tiles (fractional, counted
+    from the border's first tile); depth <= the radius: in front of no tile."""
+    v = view.rotation * p + view.translation
     d = -v[2]
-    if d <= radius:
+    if d <= view.radius:
+        return wp.vec3(-1.0, -1.0, d)
+    return wp.vec3((float(view.width) * 0.5 + view.focal * v[0] / d) / view.tile_px + float(view.border),
+                   (float(view.height) * 0.5 - view.focal * v[1] / d) / view.tile_px + float(view.border), d)
+
+
+@wp.kernel
+def nearest_front(offset: int, particle_x: wp.array(dtype=wp.vec3), view: TileView, front_out: wp.array(dtype=float)):
+    """A coarse depth buffer of the particles as spheres: each screen tile keeps the nearest sphere
+    surface through its centre."""
+    c = tile_of(view, particle_x[wp.tid() + offset])
+    d = c[2]
+    if d <= view.radius:
         return
-    cx = (float(width) * 0.5 + focal * v[0] / d) / tile_px + float(border)
-    cy = (float(height) * 0.5 - focal * v[1] / d) / tile_px + float(border)
-    reach = focal * radius / d / tile_px  # the sphere's projected radius in tiles
-    world_per_tile = tile_px * d / focal
-    for ty in range(wp.max(int(wp.floor(cy - reach)), 0), wp.min(int(wp.floor(cy + reach)) + 1, tiles_y)):
-        for tx in range(wp.max(int(wp.floor(cx - reach)), 0), wp.min(int(wp.floor(cx + reach)) + 1, tiles_x)):
-            dx = float(tx) + 0.5 - cx
-            dy = float(ty) + 0.5 - cy
+    r = view.radius
+    reach = view.focal * r / d / view.tile_px  # the sphere's projected radius in tiles
+    world_per_tile = view.tile_px * d / view.focal
+    for ty in range(wp.max(int(wp.floor(c[1] - reach)), 0), wp.min(int(wp.floor(c[1] + reach)) + 1, view.tiles_y)):
+        for tx in range(wp.max(int(wp.floor(c[0] - reach)), 0),
+                        wp.min(int(wp.floor(c[0] + reach)) + 1, view.tiles_x)):
+            dx = float(tx) + 0.5 - c[0]
+            dy = float(ty) + 0.5 - c[1]
             rho2 = (dx * dx + dy * dy) * world_per_tile * world_per_tile
-            if rho2 < radius * radius:
-                wp.atomic_min(front_out, ty * tiles_x + tx, d - wp.sqrt(radius * radius - rho2))
+            if rho2 < r * r:
+                wp.atomic_min(front_out, ty * view.tiles_x + tx, d - wp.sqrt(r * r - rho2))
 
 
 @wp.kernel
 def mark_near_front(
     offset: int,
     particle_x: wp.array(dtype=wp.vec3),
-    rotation: wp.mat33,
-    translation: wp.vec3,
-    focal: float,
-    width: int,
-    height: int,
-    tile_px: float,
-    border: int,
-    tiles_x: int,
-    tiles_y: int,
-    radius: float,
+    view: TileView,
     front: wp.array(dtype=float),
     depth_margin: float,
     near_out: wp.array(dtype=wp.uint8),
@@ -203,27 +206,28 @@ def mark_near_front(
     normal (from the tiles' depth differences), or next to an empty tile; 0 otherwise."""
     i = wp.tid() + offset
     near_out[i] = wp.uint8(0)
-    v = rotation * particle_x[i] + translation
-    d = -v[2]
-    if d <= radius:
+    c = tile_of(view, particle_x[i])
+    d = c[2]
+    if d <= view.radius:
         return
-    tx = int(wp.floor((float(width) * 0.5 + focal * v[0] / d) / tile_px)) + border
-    ty = int(wp.floor((float(height) * 0.5 - focal * v[1] / d) / tile_px)) + border
-    if tx < 0 or ty < 0 or tx >= tiles_x or ty >= tiles_y:
+    tx = int(wp.floor(c[0]))
+    ty = int(wp.floor(c[1]))
+    w = view.tiles_x
+    if tx < 0 or ty < 0 or tx >= w or ty >= view.tiles_y:
         return
-    # the depth behind the seen surface, as a distance along that surface's normal: a surface seen
-    # at a grazing angle lies far behind its nearest front along the view ray, yet close to it
-    right = front[ty * tiles_x + wp.min(tx + 1, tiles_x - 1)]
-    left = front[ty * tiles_x + wp.max(tx - 1, 0)]
-    below = front[wp.min(ty + 1, tiles_y - 1) * tiles_x + tx]
-    above = front[wp.max(ty - 1, 0) * tiles_x + tx]
+    right = front[ty * w + wp.min(tx + 1, w - 1)]
+    left = front[ty * w + wp.max(tx - 1, 0)]
+    below = front[wp.min(ty + 1, view.tiles_y - 1) * w + tx]
+    above = front[wp.max(ty - 1, 0) * w + tx]
     if wp.max(wp.max(right, left), wp.max(below, above)) >= EMPTY_FRONT:  # at the silhouette: kept
         near_out[i] = wp.uint8(1)
         return
-    world_per_tile = tile_px * d / focal
+    # the depth behind the seen surface, as a distance along that surface's normal: a surface seen
+    # at a grazing angle lies far behind its nearest front along the view ray, yet close to it
+    world_per_tile = view.tile_px * d / view.focal
     sx = (right - left) / world_per_tile
     sy = (below - above) / world_per_tile
-    behind = (d - radius - front[ty * tiles_x + tx]) / wp.sqrt(1.0 + 0.25 * (sx * sx + sy * sy))
+    behind = (d - view.radius - front[ty * w + tx]) / wp.sqrt(1.0 + 0.25 * (sx * sx + sy * sy))
     if behind <= depth_margin:
         near_out[i] = wp.uint8(1)
 
