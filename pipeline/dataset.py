@@ -152,15 +152,20 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
     log.info("dataset %s: %d frames x %d cameras at %dx%d, %d workers", scene.name, len(frames), len(CAMERAS),
              p.width, p.height, workers)
     todo = [(i, frames[i]) for i in (range(len(frames)) if subset is None else subset)]
+    pool = ThreadPoolExecutor(workers)
     try:
-        with ThreadPoolExecutor(workers) as pool, tqdm(total=len(todo), desc=f"dataset {scene.name}",
-                                                       unit="frame") as bar:
+        with tqdm(total=len(todo), desc=f"dataset {scene.name}", unit="frame") as bar:
             for fut in [pool.submit(build, i, f) for i, f in todo]:
                 fut.result()
                 bar.update()
-    finally:
+    except BaseException:  # a failed frame or Ctrl-C: the frames not begun are not waited for
+        pool.shutdown(wait=True, cancel_futures=True)
         if writer is not None:
-            writer.close()  # every queued view written (or its error raised) before the manifest
+            writer.cancel()
+        raise
+    pool.shutdown()
+    if writer is not None:
+        writer.close()  # every queued view written (or its error raised) before the manifest
     timings.merge(writer_timings)
     return timings
 

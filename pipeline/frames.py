@@ -63,7 +63,7 @@ def load_frame(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
             x = z["positions"]
             v = z["velocities"] if "velocities" in z.files else None
     except FileNotFoundError:
-        raise CacheError(f"missing cache file {path}; re-run the simulate stage") from None
+        raise CacheError(f"missing cache file {path}; {redo_hint(path)}") from None
     except (zipfile.BadZipFile, ValueError, KeyError, OSError, EOFError) as exc:
         raise CacheError(f"corrupt cache file {path} ({exc}); {redo_hint(path)}") from None
     if x.ndim != 2 or x.shape[1] != 3:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +21,14 @@ log = logging.getLogger("deep_ssfr")
 
 class StageError(RuntimeError):
     """A stage cannot go on; the message says what failed and what to do."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that a terminated stage unwinds as Ctrl-C does."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated
 
 
 @dataclass
@@ -95,6 +105,8 @@ def stage_main(stage: str, body: Callable[[], None]) -> int:
     """
     setup_logging()
     quiet_warp()
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if main else None
     try:
         body()
     except ConfigError as exc:
@@ -111,11 +123,15 @@ def stage_main(stage: str, body: Callable[[], None]) -> int:
             raise
         where = f" ({exc.filename})" if exc.filename else ""
         cause = exc.strerror or str(exc)
-        print(f"{stage}: error: {cause}{where}; finished outputs are kept and a re-run resumes", file=sys.stderr)
+        print(f"{stage}: error: {cause}{where}; finished outputs are kept: once that is fixed, the same command "
+              "resumes", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print(f"{stage}: interrupted; finished frames are kept and a re-run resumes", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        how, code = ("terminated", 143) if isinstance(exc, Terminated) else ("interrupted", 130)
+        print(f"{stage}: {how}; finished work is kept and the same command resumes", file=sys.stderr)
+        return code
     finally:
         cache.release_all()  # a stage that stopped half way still holds its entry's lock
+        if main:
+            signal.signal(signal.SIGTERM, previous)
     return 0

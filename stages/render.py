@@ -18,6 +18,7 @@ from pipeline.frames import frame_name, load_frame, read_sequence_info, select_f
 from pipeline.model import SHIPPED_WEIGHTS
 from pipeline.model.inference import checked_digest, load_weights
 from pipeline.renderer import COMPARED, render_sequence
+from pipeline.resources import check_render
 from pipeline.shading.background import Surroundings
 from stages import simulate
 from stages.common import Run, StageOptions, make_run
@@ -82,10 +83,15 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     methods = set(COMPARED if p.comparison else ()) | {p.method}
     refiner, metaball, weights = networks(run, methods)
     entry = render_entry(run, scene.name, to_dict(scene.cameras), sim.key, weights)
+    frames = select_frames(info.frames, p.frame_stride, p.max_frames)
+    if not entry.is_complete():
+        manifest = sim.manifest()
+        check_render(run.data_dir, p.width, p.height, len(frames),
+                     manifest.get("particles") or manifest.get("particles_max", 0), "render.width, render.height",
+                     copies=1)
     if not entry.begin(force=force):
         log.info("render %s: cached (%s)", scene.name, entry.dir)
         return entry
-    frames = select_frames(info.frames, p.frame_stride, p.max_frames)
     log.info("render %s: %d frames, %s camera, method %s%s, %dx%d", scene.name, len(frames), p.camera, p.method,
              " + comparison" if p.comparison else "", p.width, p.height)
     sim_dir = sim.dir  # shards carry a path, not the entry

@@ -23,9 +23,10 @@ from pipeline.device import choose_device
 from pipeline.frames import frame_name, load_frame, sequence_bounds
 from pipeline.particles.sequence import find_sequence, parse_frame_range
 from pipeline.renderer import COMPARED, render_sequence
+from pipeline.resources import check_render
 from pipeline.shading.background import Surroundings
 from pipeline.sim.runner import import_sequence
-from pipeline.sph import IMPORT_PADDING_RADII
+from pipeline.sph import IMPORT_PADDING_RADII, anisotropy_support
 from stages.common import Run, StageOptions
 from stages.render import networks, render_entry
 
@@ -99,7 +100,8 @@ def main(opts: StageOptions, req: Request) -> None:
     sim = cache.entry(run.data_dir, "simulate", name, {"files": files, "radius": radius, "fps": req.fps,
                                                        "up": req.up}, {}, run.device, MODULE)
     if sim.begin(force=run.force):
-        extra = import_sequence(sim.dir, name, list(seq.paths), radius, req.fps, req.up, req.pattern)
+        extra = import_sequence(sim.dir, name, list(seq.paths), radius, req.fps, req.up, req.pattern,
+                                support=anisotropy_support(radius, loaded.config.dataset.aniso_kernel_radius))
         sim.finish(extra.pop("files"), extra.pop("timings"), **extra)
     indices = list(range(1, len(seq) + 1))
     lo, hi = sequence_bounds(sim.dir, len(seq), stray=STRAY_SHARE)
@@ -109,6 +111,9 @@ def main(opts: StageOptions, req: Request) -> None:
     cams, camera_key = sequence_cameras(req.camera, list(seq.numbers), lo - radius, hi + radius, p.width, p.height)
     refiner, metaball, weights = networks(run, {p.method, *COMPARED})
     entry = render_entry(run, name, camera_key, sim.key, weights, MODULE)
+    if not entry.is_complete():
+        size = "--size" if req.size or req.camera in ("auto", "orbit") else f"--size (here {req.camera}'s)"
+        check_render(Path(req.out), p.width, p.height, len(seq), sim.manifest().get("particles_max", 0), size)
     if entry.begin(force=run.force):
         log.info("render %s: frames %d to %d (%d) of %s, %dx%d, %s camera, method %s", name, seq.numbers[0],
                  seq.numbers[-1], len(seq), req.pattern, p.width, p.height, req.camera, p.method)

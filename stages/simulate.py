@@ -20,6 +20,7 @@ from pipeline.config import SceneConfig, to_dict
 from pipeline.device import warp_device
 from pipeline.executor import run_tasks
 from pipeline.sim.runner import import_sequence, simulate_sequence, source_files
+from pipeline.sph import anisotropy_support
 from stages.common import Run, StageOptions, make_run
 
 log = logging.getLogger("deep_ssfr")
@@ -45,8 +46,9 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
         return entry
     if scene.source is not None:
         src = scene.source
+        support = anisotropy_support(src.particle_radius, run.config.dataset.aniso_kernel_radius)
         extra = import_sequence(entry.dir, scene.name, source_files(scene), src.particle_radius, src.fps, src.up,
-                                src.pattern)
+                                src.pattern, support)
     else:
         extra = simulate_sequence(entry.dir, scene, run.config.simulate, warp_device(run.device), run.config.seed)
     entry.finish(extra.pop("files"), extra.pop("timings"), **extra)

@@ -56,14 +56,16 @@ def on_writes(cmd: list[str], pattern: str, count: int, then, env: dict | None =
     """Run a stage in a subprocess and call ``then(proc)`` right after its ``count``-th finished file
     whose path matches ``pattern`` (at once when ``count`` is 0; the cache logs each rename at DEBUG
     level: an event, not a poll); the rest of its log is drained until it ends. Returns the ended
-    process, with ``proc.seen`` the number of matching files it had finished."""
+    process, with ``proc.seen`` the number of matching files it had finished and ``proc.log`` its
+    stderr lines."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {}), "DEEP_SSFR_LOG": "DEBUG"}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    proc.seen, called = 0, False
+    proc.seen, proc.log, called = 0, [], False
     if count == 0:
         then(proc)
         called = True
     for line in proc.stderr:
+        proc.log.append(line)
         _, marker, path = line.strip().partition(" wrote ")
         if marker and fnmatch.fnmatch(path, pattern):
             proc.seen += 1

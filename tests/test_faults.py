@@ -187,10 +187,10 @@ def small_disk(tmp_path):
 
 @pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
 def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, capsys):
-    """Fill the disk so that space runs out at successively later points of a render (frames,
-    previews, comparison tiles, videos, the contact sheet): every failure is one line naming a
-    file and the cause, never a traceback, nothing is marked complete, and once space is freed
-    the same render completes."""
+    """Fill the disk so that space runs out at successively later points of a render (before it, by
+    the estimate; frames, previews, comparison tiles, videos, the contact sheet): every failure is
+    one line naming a file and the cause, never a traceback, nothing is marked complete, and once
+    space is freed the same render completes."""
     import shutil
     from pathlib import Path
 
@@ -215,10 +215,15 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
         assert "Traceback" not in err
         if code:
             line = _one_line(err)
-            assert code == 1 and "No space left on device" in line and str(small_disk) in line, line
+            assert code == 1 and str(small_disk) in line, line
             assert not list((small_disk / "data" / "render").glob("*/manifest.json"))
-            failures.add(Path(line.split("(")[-1].split(")")[0]).suffix)
-    assert {".exr", ".png"} <= failures, failures
+            if "GB free" in line:  # refused up front: the frames' estimate does not fit
+                assert "render.width, render.height: 6 frames of 128x128 need about" in line, line
+                failures.add("estimate")
+            else:
+                assert "No space left on device" in line, line
+                failures.add(Path(line.split("(")[-1].split(")")[0]).suffix)
+    assert {"estimate", ".exr", ".png"} <= failures, failures
     # the videos take a few kB: fill the disk right before the real ffmpeg writes them
     from pipeline import renderer
 
@@ -397,3 +402,100 @@ def test_a_read_only_disk_is_one_line(small_disk, tiny_dam, capsys):
     assert cli.main(["simulate", "--config", str(tiny_dam)]) == 1
     line = _one_line(capsys.readouterr().err)
     assert "Read-only file system" in line and str(small_disk) in line, line
+
+
+SPLISH_FRAME = ROOT / "tests" / "data" / "double_dam_break_frame_01_4732_particles.vtk"
+
+
+def _user_sequence(folder, frames: int) -> str:
+    """``frames`` copies of the SPlisHSPlasH test frame as fluid_1.vtk ...; returns their pattern."""
+    import shutil
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(1, frames + 1):
+        shutil.copy(SPLISH_FRAME, folder / f"fluid_{i}.vtk")
+    return str(folder / "fluid_{}.vtk")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig, code, word", [("SIGINT", 130, "interrupted"), ("SIGTERM", 143, "terminated")])
+def test_a_signal_ends_a_render_within_two_seconds_and_the_same_command_resumes(tmp_path, sig, code, word):
+    """Ctrl-C or SIGTERM right after the first frame's EXR: the render ends within 2 s with one line
+    (exit 130 / 143), keeps that frame, and the same command then renders only the rest."""
+    import signal
+    import sys
+    import time
+
+    from tests.conftest import on_writes
+
+    pattern, out = _user_sequence(tmp_path / "seq", 4), tmp_path / "out"
+    cmd = [sys.executable, "-m", "stages.render", pattern, "--radius", "0.025", "--out", str(out),
+           "--size", "160x120"]
+    sent = {}
+
+    def stop(proc) -> None:
+        sent["at"] = time.perf_counter()
+        proc.send_signal(getattr(signal, sig))
+
+    proc = on_writes(cmd, "*/frames/frame_0001.exr", 1, stop)
+    waited = time.perf_counter() - sent["at"]
+    assert proc.returncode == code and waited < 2.0, (proc.returncode, waited)
+    assert [line for line in proc.log if line.startswith("render:")] == \
+        [f"render: {word}; finished work is kept and the same command resumes\n"]
+    (entry,) = (out / ".cache" / "render").glob("*")
+    first = entry / "frames" / "frame_0001.exr"
+    assert not (entry / "manifest.json").exists()
+    kept = first.stat().st_mtime_ns
+    assert cli.main(["render", *cmd[3:]]) == 0
+    assert sorted(p.name for p in out.glob("frame_*.exr")) == [f"frame_{i:04d}.exr" for i in range(1, 5)]
+    assert first.stat().st_mtime_ns == kept, "a finished frame was redone"
+
+
+def test_a_cloud_far_denser_than_a_fluid_is_refused_before_any_work(tmp_path, capsys):
+    """150,000 particles of radius 1 cm in a 1 mm box (a units mistake): one line naming the file
+    and --radius, before a frame renders, instead of a neighbour search of 2e10 pairs."""
+    from pipeline.particles import ParticleFrame, write_particles
+
+    x = np.random.default_rng(0).uniform(0.0, 0.001, (150_000, 3)).astype(np.float32)
+    write_particles(tmp_path / "dense_1.ply", ParticleFrame(x, None, np.full(len(x), 0.01, np.float32)))
+    out = tmp_path / "out"
+    assert cli.main(["render", str(tmp_path / "dense_{}.ply"), "--out", str(out), "--size", "64x64"]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert "dense_1.ply" in line and "150,000 particles" in line and "check --radius" in line
+    assert not list(out.glob("frame_*.exr")) and not (out / ".cache" / "render").exists()
+
+
+def test_a_render_that_cannot_fit_in_memory_is_refused_naming_the_size(tmp_path, capsys):
+    pattern = _user_sequence(tmp_path / "seq", 1)
+    out = tmp_path / "out"
+    assert cli.main(["render", pattern, "--radius", "0.025", "--out", str(out), "--size", "16000x16000"]) == 1
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("render: error: --size: a 16000x16000 frame of 4,732 particles needs about") and \
+        "GB of memory" in line
+    assert not (out / ".cache" / "render").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_a_simulation_within_two_seconds_and_the_same_command_resumes(tiny_dam):
+    import signal
+    import sys
+    import time
+
+    from tests.conftest import on_writes
+
+    body = yaml.safe_load(tiny_dam.read_text())
+    body["simulate"]["frames"] = 40
+    tiny_dam.write_text(yaml.safe_dump(body))
+    cmd = [sys.executable, "-m", "stages.simulate", "--config", str(tiny_dam)]
+    sent = {}
+
+    def stop(proc) -> None:
+        sent["at"] = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+
+    proc = on_writes(cmd, "*/frame_0010.npz", 1, stop)
+    assert proc.returncode == 130 and time.perf_counter() - sent["at"] < 2.0
+    (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
+    assert 10 <= len(list(entry.glob("frame_*.npz"))) < 40 and not (entry / "manifest.json").exists()
+    assert cli.main(["simulate", "--config", str(tiny_dam)]) == 0
+    assert len(list(entry.glob("frame_*.npz"))) == 40

@@ -10,13 +10,15 @@ import logging
 import time
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
+from pipeline import resources
 from pipeline.config import SceneConfig, SimulateConfig
 from pipeline.frames import SequenceInfo, completed_frames, frame_name, load_frame, save_frame, write_sequence_info
 from pipeline.particles import read_particles
 from pipeline.particles.sequence import find_sequence
-from pipeline.sph import IMPORT_PADDING_RADII, WATER_DENSITY
+from pipeline.sph import IMPORT_PADDING_RADII, NEIGHBOUR_PAIRS_LIMIT, WATER_DENSITY, neighbour_count
 from pipeline.timing import Timings
 from pipeline.writer import BackgroundWriter
 
@@ -33,9 +35,10 @@ def source_files(scene: SceneConfig) -> list[Path]:
 
 
 def import_sequence(folder: Path, name: str, files: list[Path], radius: float, fps: float, up: str = "y",
-                    source: str = "") -> dict:
+                    source: str = "", support: float = 0.0) -> dict:
     """Copy particle files (in this order) into the folder as frames 1, 2, ...; returns the
-    manifest's extra fields. ``up="z"`` turns Z-up data to the pipeline's Y-up."""
+    manifest's extra fields. ``up="z"`` turns Z-up data to the pipeline's Y-up. ``support``: the
+    anisotropy's neighbour radius; a frame whose neighbour search would not finish is refused."""
     folder = Path(folder)
     timings, n_max = Timings(), 0
     for i, f in enumerate(tqdm(files, desc=f"import {name}", unit="frame"), start=1):
@@ -44,6 +47,8 @@ def import_sequence(folder: Path, name: str, files: list[Path], radius: float, f
             continue
         with timings("read"):
             frame = read_particles(f, up=up)
+        if support > 0:
+            check_crowding(f, frame.positions, radius, support)
         save_frame(target, frame.positions, frame.velocities)
         n_max = max(n_max, len(frame.positions))
     first = read_particles(files[0], up=up).positions
@@ -56,6 +61,17 @@ def import_sequence(folder: Path, name: str, files: list[Path], radius: float, f
             "particles_max": n_max}
 
 
+def check_crowding(path: Path, positions: np.ndarray, radius: float, support: float) -> None:
+    """Refuse a frame whose particles crowd so densely that its neighbour search would not finish."""
+    neighbours = neighbour_count(positions, support)
+    if len(positions) * neighbours > NEIGHBOUR_PAIRS_LIMIT:
+        raise ValueError(f"{path}: each particle has about {neighbours:,.0f} neighbours within the anisotropy's "
+                         f"radius {support:.4g} (a fluid at rest: about 520), {len(positions) * neighbours:.1e} "
+                         f"pairs for its {len(positions):,} particles, over the {NEIGHBOUR_PAIRS_LIMIT:.0e} a frame "
+                         f"can search: at radius {radius:.4g} they overlap far more than a fluid's; check --radius "
+                         f"against the files' units")
+
+
 FRAME_BYTES_PER_PARTICLE = 24
 """A cached frame's bytes per particle: float32 positions and velocities (plus a small header)."""
 
@@ -63,14 +79,9 @@ FRAME_BYTES_PER_PARTICLE = 24
 def check_disk(folder: Path, name: str, frames: int, particles: int) -> None:
     """Refuse, before the first frame, a run whose frames would not fit on the cache's disk
     (``particles``: the scene's initial count, so emitters' particles are not foreseen)."""
-    import shutil
-
-    need = frames * (particles * FRAME_BYTES_PER_PARTICLE + 1024)
-    free = shutil.disk_usage(folder).free
-    if need > free:
-        raise ValueError(f"simulate.frames: {frames:,} more frames of scene {name!r} ({particles:,} particles) need "
-                         f"about {need / 1e9:.3g} GB, but {folder} has {free / 1e9:.3g} GB free; lower "
-                         f"simulate.frames or free some space")
+    resources.check_disk(folder, frames * (particles * FRAME_BYTES_PER_PARTICLE + 1024),
+                         f"simulate.frames: {frames:,} more frames of scene {name!r} ({particles:,} particles)",
+                         "lower simulate.frames or free some space")
 
 
 def simulate_sequence(folder: Path, scene: SceneConfig, params: SimulateConfig, device: str, seed: int) -> dict:

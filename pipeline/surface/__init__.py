@@ -19,7 +19,7 @@ from skimage import measure
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.parallel import Launcher
-from pipeline.sph import POLY6_NORM, lattice_offsets, particle_volume, spacing
+from pipeline.sph import POLY6_NORM, anisotropy_support, lattice_offsets, particle_volume, spacing
 from pipeline.surface import kernels as K
 from pipeline.timing import Timings
 from pipeline.vectors import length
@@ -129,7 +129,7 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
         return (wp.zeros(0, dtype=wp.vec3, device=device), wp.zeros(0, dtype=wp.mat33, device=device),
                 wp.zeros(0, dtype=float, device=device))
     h = p.aniso_kernel_radius * radius
-    support = 2.0 * h
+    support = anisotropy_support(radius, p.aniso_kernel_radius)
     positions = np.ascontiguousarray(positions, np.float32)
     x = wp.array(positions, dtype=wp.vec3, device=device)
     grid = hash_grid(x, positions, support / ANISOTROPY_CELLS_PER_SUPPORT, device)
@@ -167,7 +167,7 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     seen side, so its ellipsoid is a sphere of radius r anyway and hidden: the ellipsoid splat is the
     same (tested), at a fifth of the anisotropy's cost for a million particles. Returns the kernels
     and the indices of the particles that got their anisotropy (every particle seen in front)."""
-    support = 2.0 * p.aniso_kernel_radius * radius
+    support = anisotropy_support(radius, p.aniso_kernel_radius)
     # a surface particle moves inwards by at most the smoothing times its one-sided neighbourhood's
     # mean offset (3/8 of the support for a half ball): a hidden one left a sphere in its place
     # would stand out that far, plus its radius, past the silhouette
