@@ -14,7 +14,7 @@ STAGE_ARGS = --config $(CONFIG) $(if $(SCENE),--scene $(SCENE)) $(if $(FORCE),--
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: setup test lint demo simulate dataset train train-ddp ship render evaluate metaball-dataset metaball-train \
+.PHONY: setup test test-fast lint demo simulate dataset train train-ddp ship render evaluate metaball-dataset metaball-train \
 	metaball-ship export bench cache-ls clean-cache
 
 setup: $(VENV)/.installed
@@ -38,6 +38,10 @@ $(VENV)/.installed: pyproject.toml $(VENV)/.apt-checked
 
 test: setup
 	$(PY) -m pytest -q
+
+# the inner loop: every test but the end-to-end stage runs and multi-process fault tests
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check .

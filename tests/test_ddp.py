@@ -205,6 +205,7 @@ def _ddp_worker(rank: int, port: int, folder: str) -> None:
     fit(Path(folder, "clock"), TrainConfig(epochs=2, time_limit_minutes=1, **cfg), 0, paths[:4], paths[4:], "cpu")
 
 
+@pytest.mark.slow
 def test_ddp_of_two_cpu_processes_trains_resumes_like_a_straight_run_and_its_checkpoint_loads(tmp_path):
     """Disk data under DDP: workers or not, straight or resumed, the same weights."""
     from pipeline.model.inference import load_refiner
@@ -354,6 +355,7 @@ def _waiting_worker(rank: int, port: int, folder: str, case: str) -> None:
     Path(folder, f"{case}-{rank}.txt").write_text("\n".join(seen))
 
 
+@pytest.mark.slow
 def test_the_others_wait_for_rank_0s_long_work_and_a_lost_peer_ends_either_side_within_the_timeout(tmp_path):
     """While rank 0 works alone (a cache lock, validation) its heartbeats keep the others waiting past
     the group's timeout; a failure in its work fails the others too; a peer that ends while rank 0

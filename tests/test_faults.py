@@ -185,6 +185,7 @@ def small_disk(tmp_path):
     subprocess.run(["umount", str(mount)], capture_output=True)
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
 def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, capsys):
     """Fill the disk so that space runs out at successively later points of a render (before it, by

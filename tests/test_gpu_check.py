@@ -80,7 +80,7 @@ def test_every_benchmark_step_parses_its_arguments(name, monkeypatch):
 def test_the_cuda_step_selects_the_cuda_tests_the_readme_counts():
     words = _steps()["cuda_tests"][1]
     assert words[:3] == ["python", "-m", "pytest"] and words[words.index("-m", 3) + 1] == "cuda"
-    said = re.search(r"`pytest -m cuda` runs the (\d+) tests", (ROOT / "README.md").read_text())
+    said = re.search(r"`pytest -m cuda` runs the (\d+) tests", (ROOT / "docs" / "development.md").read_text())
     out = subprocess.run([sys.executable, *words[1:], "--collect-only"], cwd=ROOT, capture_output=True,
                          text=True, timeout=300)
     collected = re.search(r"^(\d+)/\d+ tests collected", out.stdout, re.MULTILINE)

@@ -117,6 +117,7 @@ def _generator_state(tmp_path, name):
     return state["generator"], state["epoch"]
 
 
+@pytest.mark.slow
 def test_resume_after_kill_equals_straight_run(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     straight = _tiny_train_config(tmp_path, "straight")

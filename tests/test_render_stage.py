@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import torch
 import yaml
 
@@ -137,6 +138,7 @@ def test_an_empty_particle_frame_renders_background_and_the_rest_render(tmp_path
     assert np.isfinite(empty["ViewLayer.Combined.R"]).all()
 
 
+@pytest.mark.slow
 def test_evaluate_smoke(tmp_path):
     config = _config(tmp_path, _tiny_checkpoint(tmp_path))
     body = yaml.safe_load(open(config))
