@@ -62,7 +62,7 @@ export: setup
 NPROC ?= 2
 TORCHRUN_ARGS ?= --standalone
 train-ddp: setup
-	$(VENV)/bin/torchrun $(TORCHRUN_ARGS) --nproc_per_node $(NPROC) -m stages.train $(STAGE_ARGS)
+	$(VENV)/bin/torchrun $(TORCHRUN_ARGS) --nproc_per_node $(NPROC) -m stages.cli train $(STAGE_ARGS)
 
 bench: setup
 	$(PY) -m pip install -q -e '.[dev,bench]'

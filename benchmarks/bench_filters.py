@@ -21,10 +21,10 @@ import numpy as np
 import warp as wp
 
 from pipeline.camera import camera_for_frame
-from pipeline.evaluate.metrics import angular_errors
 from pipeline.exr import stack
 from pipeline.frames import frame_name, load_frame, spread
 from pipeline.methods import refine
+from pipeline.metrics import angular_errors
 from pipeline.model import SHIPPED_WEIGHTS
 from pipeline.model.inference import load_refiner
 from pipeline.parallel import Launcher

@@ -201,7 +201,7 @@ def main() -> None:
             config = Path(tmp) / "demo.yaml"
             config.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\ndata_dir: {Path(tmp) / 'data'}\n")
             start = time.perf_counter()
-            subprocess.run([sys.executable, "-m", "stages.demo", "--config", str(config)], cwd=ROOT, check=True,
+            subprocess.run([sys.executable, "-m", "stages.cli", "demo", "--config", str(config)], cwd=ROOT, check=True,
                            env={**os.environ, "PYTHONPATH": str(ROOT), "DEEP_SSFR_DEVICE": device},
                            stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL)

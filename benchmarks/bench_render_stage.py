@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_dataset import _camera_for, _pbf_state  # noqa: E402
 
 from pipeline.camera import Camera, look_at  # noqa: E402
-from pipeline.config import load  # noqa: E402
+from pipeline.config_files import load  # noqa: E402
 from pipeline.device import choose_device  # noqa: E402
 from pipeline.model import SHIPPED_WEIGHTS  # noqa: E402
 from pipeline.model.inference import load_refiner  # noqa: E402

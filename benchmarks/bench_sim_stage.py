@@ -26,7 +26,7 @@ from pathlib import Path
 import warp as wp
 from stage_runs import logged_summary, scratch_config
 
-from pipeline.config import load
+from pipeline.config_files import load
 from pipeline.device import choose_device, warp_device
 from pipeline.profiling import Trace, profiled
 from pipeline.sim.pbf import PBFSolver

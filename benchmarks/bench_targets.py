@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_dataset import _camera_for, _pbf_frame  # noqa: E402
 
 from pipeline.config import DatasetConfig  # noqa: E402
-from pipeline.evaluate.metrics import angular_errors, iou  # noqa: E402
+from pipeline.metrics import angular_errors, iou  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.particles import read_particles  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402

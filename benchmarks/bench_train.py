@@ -11,7 +11,7 @@ import time
 import numpy as np
 import torch
 
-from pipeline.config import load
+from pipeline.config_files import load
 from pipeline.device import choose_device
 from pipeline.model.data import InputSpec
 from pipeline.model.networks import count_parameters

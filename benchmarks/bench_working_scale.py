@@ -30,8 +30,8 @@ import pipeline.methods as methods  # noqa: E402
 from pipeline.camera import framing_cameras  # noqa: E402
 from pipeline.config import DatasetConfig  # noqa: E402
 from pipeline.device import warp_device  # noqa: E402
-from pipeline.evaluate.metrics import angular_errors, iou  # noqa: E402
 from pipeline.methods import normal_source  # noqa: E402
+from pipeline.metrics import angular_errors, iou  # noqa: E402
 from pipeline.model import SHIPPED_WEIGHTS  # noqa: E402
 from pipeline.model.inference import load_weights  # noqa: E402
 from pipeline.model.scale import median_radius_px, working_scale  # noqa: E402

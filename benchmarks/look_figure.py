@@ -27,7 +27,7 @@ import dataclasses, sys
 from pathlib import Path
 sys.path.insert(0, {root!r})
 from pipeline.camera import camera_for_frame
-from pipeline.config import load
+from pipeline.config_files import load
 from pipeline.frames import load_frame
 from pipeline.model import SHIPPED_WEIGHTS
 from pipeline.model.inference import load_weights

@@ -21,9 +21,9 @@ import numpy as np
 import warp as wp
 
 from pipeline.camera import camera_for_frame
-from pipeline.evaluate.metrics import angular_errors
 from pipeline.exr import stack
 from pipeline.frames import frame_name, load_frame, read_sequence_info, spread
+from pipeline.metrics import angular_errors
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct

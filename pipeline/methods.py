@@ -20,8 +20,8 @@ import warp as wp
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
 from pipeline.device import on_torch_stream
-from pipeline.evaluate.metrics import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
 from pipeline.exr import camera_attributes, stack, write_exr
+from pipeline.masks import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
 from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import RELIEF_WINDOW_RADII, input_channels, prepare
 from pipeline.model.inference import Refiner, fluid_window

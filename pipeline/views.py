@@ -13,9 +13,10 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
+from pipeline.ellipsoids import Ellipsoids
 from pipeline.parallel import Launcher
 from pipeline.screen import FILTERS, ScreenSpace
-from pipeline.surface import Ellipsoids, SurfaceMesh, raytrace_maps, render_maps
+from pipeline.surface import SurfaceMesh, raytrace_maps, render_maps
 from pipeline.timing import Timings
 
 AXES = ("X", "Y", "Z")

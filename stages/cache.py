@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 
 from pipeline.cache import list_entries
-from pipeline.config import load
+from pipeline.config_files import load
 from stages.common import StageOptions
 
 

@@ -1,8 +1,10 @@
-"""``deep-ssfr``: every stage a command with ``--help`` (the make targets call them); errors: one line."""
+"""``deep-ssfr``: every stage a command with ``--help``; errors: one line. The one entry point: the console
+script, the make targets, ``python -m stages.cli`` (torchrun, tests) all come here."""
 
 from __future__ import annotations
 
 import importlib
+import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -136,3 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     return 0
+
+
+if __name__ == "__main__":  # python -m stages.cli STAGE ..., as torchrun starts the training
+    sys.exit(main())

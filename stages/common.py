@@ -13,7 +13,8 @@ from pathlib import Path
 
 from pipeline import cache
 from pipeline.cache import CacheError
-from pipeline.config import ConfigError, Loaded, load
+from pipeline.config import ConfigError
+from pipeline.config_files import Loaded, load
 from pipeline.device import choose_device
 
 log = logging.getLogger("deep_ssfr")

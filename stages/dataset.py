@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import sys
 import time
 
 from pipeline import cache
@@ -73,9 +72,3 @@ def main(opts: StageOptions) -> None:
     simulate.ahead(run, scenes)
     for scene in scenes:
         ensure(run, scene, force=run.force)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["dataset", *sys.argv[1:]]))

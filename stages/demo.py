@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import sys
 import time
 
 from stages import render
@@ -34,9 +33,3 @@ def main(opts: StageOptions) -> None:
     print(f"  video             {entry.dir / f'{scene.name}_{p.method}.mp4'}")
     print(f"  comparison video  {entry.dir / f'{scene.name}_comparison.mp4'}")
     print(f"  comparison sheet  {entry.dir / f'{scene.name}_comparison_sheet.png'}")
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["demo", *sys.argv[1:]]))

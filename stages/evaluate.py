@@ -9,7 +9,6 @@ figures.
 from __future__ import annotations
 
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -105,9 +104,3 @@ def main(opts: StageOptions) -> None:
     entry.finish(["report.md", "metrics.json", "methods.png", "frames.png", "examples.png"], {},
                  wall_seconds=round(time.perf_counter() - start, 1))
     log.info("evaluate: report in %s", entry.path("report.md"))
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["evaluate", *sys.argv[1:]]))

@@ -6,7 +6,6 @@ Writes ``data/simulate/<scene>-<key>/export/<format>/frame_0001.<format> ...``.
 from __future__ import annotations
 
 import logging
-import sys
 
 from tqdm import tqdm
 
@@ -32,9 +31,3 @@ def main(opts: StageOptions, fmt: str = "ply") -> None:
             with cache.atomic_path(out / frame_name(i, fmt)) as tmp:
                 write_particles(tmp, ParticleFrame(x, v), fmt)
         log.info("export %s: %d %s files in %s", scene.name, n, fmt, out)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["export", *sys.argv[1:]]))

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import time
 
 from pipeline import cache
@@ -105,9 +104,3 @@ def main(opts: StageOptions) -> None:
     for scene in [*train, *val]:
         ensure(run, scene, force=run.force)
     ensure_random_sets(run, force=run.force)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["metaball-dataset", *sys.argv[1:]]))

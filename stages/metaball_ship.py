@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import sys
 from pathlib import Path
 
 import torch
@@ -65,9 +64,3 @@ def main(opts: StageOptions, out: str = "") -> None:
     metaball_curves(curve, history)
     log.info("metaball ship: epoch %d of %s (validation %.2f deg) -> %s (%.1f MB)", state["epoch"], entry.dir,
              state["metrics"]["mean_deg"], weights, weights.stat().st_size / 2**20)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["metaball-ship", *sys.argv[1:]]))

@@ -8,7 +8,6 @@ stops it between epochs (the next run goes on).
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 
 from pipeline import cache
@@ -75,9 +74,3 @@ def main(opts: StageOptions) -> None:
     run = make_run(opts)
     entry = ensure(run, force=run.force)
     log.info("metaball train: checkpoints in %s", entry.dir)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["metaball-train", *sys.argv[1:]]))

@@ -7,7 +7,6 @@ filter settings, the cameras, the particles and the generator's weights.
 from __future__ import annotations
 
 import logging
-import sys
 import time
 from pathlib import Path
 
@@ -116,9 +115,3 @@ def main(opts: StageOptions) -> None:
         entry = ensure(run, scene, force=run.force)
         log.info("render %s: outputs in %s", scene.name, entry.dir)
     log.info("render: done in %.1f s", time.perf_counter() - start)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["render", *sys.argv[1:]]))

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from pipeline import cache
 from pipeline.camera import camera_file_size, sequence_cameras, write_camera_file
-from pipeline.config import Config, ConfigError, Loaded, load
+from pipeline.config import Config, ConfigError
+from pipeline.config_files import Loaded, load
 from pipeline.device import choose_device
 from pipeline.frames import frame_name, load_frame, sequence_bounds
 from pipeline.particles.sequence import find_sequence, parse_frame_range

@@ -12,7 +12,6 @@ import hashlib
 import json
 import logging
 import shutil
-import sys
 from pathlib import Path
 
 import torch
@@ -83,9 +82,3 @@ def main(opts: StageOptions, out: str = "") -> None:
         shutil.copyfile(entry.path("loss_curve.png"), tmp)
     log.info("ship: epoch %d of %s (held-out mean %.2f deg) -> %s (%.1f MB)", state["epoch"], entry.dir,
              state["metrics"]["refined"]["mean_deg"], weights, weights.stat().st_size / 2**20)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["ship", *sys.argv[1:]]))

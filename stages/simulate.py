@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import sys
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
@@ -125,9 +124,3 @@ def main(opts: StageOptions) -> None:
     """``deep-ssfr simulate``: every configured scene."""
     run = make_run(opts)
     ensure_all(run, list(run.loaded.scenes.values()), force=run.force)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["simulate", *sys.argv[1:]]))

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -119,9 +118,3 @@ def main(opts: StageOptions) -> None:
     run = make_run(opts)
     entry = ensure(run, force=run.force)
     log.info("train: checkpoints in %s", entry.dir)
-
-
-if __name__ == "__main__":
-    from stages.cli import main as cli
-
-    sys.exit(cli(["train", *sys.argv[1:]]))

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from pipeline import cache
-from pipeline.config import load
+from pipeline.config_files import load
 from pipeline.frames import load_frame
 from stages import cli, simulate
 from stages.common import Run
@@ -103,7 +103,7 @@ def test_sigkill_half_way_then_resume_equals_clean_run(tiny_dam, tmp_path):
     body["simulate"]["frames"] = 60
     tiny_dam.write_text(yaml.safe_dump(body))
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "stages.simulate", "--config", str(tiny_dam)]
+    cmd = [sys.executable, "-m", "stages.cli", "simulate", "--config", str(tiny_dam)]
     assert kill_after_writes(cmd, "*/frame_0015.npz") == 1
     data = tiny_dam.parent / "data" / "simulate"
     (entry,) = list(data.iterdir())

@@ -21,7 +21,7 @@ def _render_config(tiny_dam):
     body["simulate"]["frames"] = 30  # long enough for the two runs to overlap
     body["render"] = {"width": 64, "height": 64, "method": "nrf", "comparison": True}
     tiny_dam.write_text(yaml.safe_dump(body))
-    return [sys.executable, "-m", "stages.render", "--config", str(tiny_dam)]
+    return [sys.executable, "-m", "stages.cli", "render", "--config", str(tiny_dam)]
 
 
 def _whole(folder) -> None:
@@ -60,7 +60,7 @@ def test_two_renders_of_one_config_at_once_both_succeed(tiny_dam, offset, force)
 
 @pytest.mark.slow
 def test_force_builds_beside_the_old_entry_and_swaps_it_in(tiny_dam):
-    cmd = [sys.executable, "-m", "stages.simulate", "--config", str(tiny_dam)]
+    cmd = [sys.executable, "-m", "stages.cli", "simulate", "--config", str(tiny_dam)]
     assert subprocess.run(cmd, cwd=ROOT, capture_output=True).returncode == 0
     (entry,) = (tiny_dam.parent / "data" / "simulate").iterdir()
     before = {p.name: p.read_bytes() for p in entry.glob("frame_*.npz")}

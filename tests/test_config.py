@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from pipeline.config import ConfigError, load
+from pipeline.config import ConfigError
+from pipeline.config_files import load
 from stages import cli
 
 

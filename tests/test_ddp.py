@@ -3,7 +3,7 @@
 The lazy dataset must give the same batches for any number of DataLoader workers and after a
 resume; the in-memory path must train exactly as it did before either existed; a DDP run must
 train, resume like a straight run and write checkpoints that ``load_refiner`` reads; and
-``torchrun -m stages.train`` must handle the cache entry on rank 0 alone.
+``torchrun -m stages.cli train`` must handle the cache entry on rank 0 alone.
 """
 
 from __future__ import annotations
@@ -229,10 +229,10 @@ def test_ddp_of_two_cpu_processes_trains_resumes_like_a_straight_run_and_its_che
 
 
 def _torchrun(config: str) -> subprocess.Popen:
-    """``torchrun --standalone --nproc_per_node 2 -m stages.train --config CONFIG``, stderr piped."""
+    """``torchrun --standalone --nproc_per_node 2 -m stages.cli train --config CONFIG``, stderr piped."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           "-m", "stages.train", "--config", config]
+           "-m", "stages.cli", "train", "--config", config]
     return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 

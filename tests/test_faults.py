@@ -430,7 +430,7 @@ def test_a_signal_ends_a_render_within_two_seconds_and_the_same_command_resumes(
     from tests.conftest import on_writes
 
     pattern, out = _user_sequence(tmp_path / "seq", 4), tmp_path / "out"
-    cmd = [sys.executable, "-m", "stages.render", pattern, "--radius", "0.025", "--out", str(out),
+    cmd = [sys.executable, "-m", "stages.cli", "render", pattern, "--radius", "0.025", "--out", str(out),
            "--size", "160x120"]
     sent = {}
 
@@ -447,7 +447,7 @@ def test_a_signal_ends_a_render_within_two_seconds_and_the_same_command_resumes(
     first = entry / "frames" / "frame_0001.exr"
     assert not (entry / "manifest.json").exists()
     kept = first.stat().st_mtime_ns
-    assert cli.main(["render", *cmd[3:]]) == 0
+    assert cli.main(cmd[3:]) == 0
     assert sorted(p.name for p in out.glob("frame_*.exr")) == [f"frame_{i:04d}.exr" for i in range(1, 5)]
     assert first.stat().st_mtime_ns == kept, "a finished frame was redone"
 
@@ -487,7 +487,7 @@ def test_ctrl_c_ends_a_simulation_within_two_seconds_and_the_same_command_resume
     body = yaml.safe_load(tiny_dam.read_text())
     body["simulate"]["frames"] = 40
     tiny_dam.write_text(yaml.safe_dump(body))
-    cmd = [sys.executable, "-m", "stages.simulate", "--config", str(tiny_dam)]
+    cmd = [sys.executable, "-m", "stages.cli", "simulate", "--config", str(tiny_dam)]
     sent = {}
 
     def stop(proc) -> None:

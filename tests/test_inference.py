@@ -104,7 +104,7 @@ def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
     """``refine`` computes the mask's reach and the extended depth from one distance transform and
     normalises only masked pixels; it must give what the separate rules give (``refined_mask``,
     ``extend_depth``, the normalised network output), at a size the working scale changes."""
-    from pipeline.evaluate.metrics import REFINED_REACH_PX, refined_mask
+    from pipeline.masks import REFINED_REACH_PX, refined_mask
     from pipeline.methods import extend_depth, refine
     from pipeline.model.data import input_channels, prepare
     from pipeline.model.scale import resize_normals

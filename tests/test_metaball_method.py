@@ -11,7 +11,8 @@ import torch
 import yaml
 
 from pipeline.camera import Camera, look_at
-from pipeline.config import METHODS, ConfigError, MetaballConfig, load
+from pipeline.config import METHODS, ConfigError, MetaballConfig
+from pipeline.config_files import load
 from pipeline.metaball import encode_targets, paper_camera
 from pipeline.metaball.dataset import training_pair, write_view
 from pipeline.metaball.inference import MetaballNet

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate.metrics import angular_errors, iou, normal_mask, summarize_angles
+from pipeline.masks import normal_mask
+from pipeline.metrics import angular_errors, iou, summarize_angles
 
 
 def _random_normals(seed=0, shape=(32, 40)):
@@ -47,7 +48,7 @@ def test_refined_pixels_may_reach_past_the_splat_by_the_reach_only():
     """A splat disc of radius 8 px and a predicted normal map of unit vectors everywhere but for a
     short vector inside: with a reach of 3 px the mask is the disc grown by 3 px (Euclidean), without
     the noise pixel; with no reach it is the disc."""
-    from pipeline.evaluate.metrics import refined_mask
+    from pipeline.masks import refined_mask
 
     yy, xx = np.mgrid[0:40, 0:40]
     dist = np.hypot(yy - 20, xx - 20)
@@ -85,7 +86,7 @@ def test_windowed_distance_transforms_give_the_whole_image_results(seed):
     lattice of depths, they must give what the transform of the whole image gives."""
     from scipy.ndimage import binary_dilation, distance_transform_edt
 
-    from pipeline.evaluate.metrics import near
+    from pipeline.masks import near
     from pipeline.methods import extend_depth
 
     rng = np.random.default_rng(seed)
@@ -103,7 +104,7 @@ def test_windowed_distance_transforms_give_the_whole_image_results(seed):
     whole = np.where(mask, depth[rows, cols], 0.0)
     np.testing.assert_array_equal(extend_depth(depth, mask), whole)
     # the renderer's shared transform (refine): the mask within the reach, the same depths
-    from pipeline.evaluate.metrics import NearestFluid
+    from pipeline.masks import NearestFluid
 
     nearest = NearestFluid.of(fluid, 4.0)
     within = mask & nearest.near(4.0)
@@ -156,7 +157,7 @@ def test_nearest_fluid_of_a_tensor_gives_the_host_reach_and_spread(seed):
     import torch
     from scipy.ndimage import binary_dilation
 
-    from pipeline.evaluate.metrics import NearestFluid
+    from pipeline.masks import NearestFluid
     from pipeline.methods import extend_depth
 
     rng = np.random.default_rng(seed)

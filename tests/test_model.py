@@ -122,7 +122,7 @@ def test_resume_after_kill_equals_straight_run(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     straight = _tiny_train_config(tmp_path, "straight")
     killed = _tiny_train_config(tmp_path, "killed")
-    run = [sys.executable, "-m", "stages.train", "--config"]
+    run = [sys.executable, "-m", "stages.cli", "train", "--config"]
     assert subprocess.run(run + [straight], cwd=ROOT, env=env, capture_output=True).returncode == 0
     assert kill_after_writes(run + [killed], "*/last.pt") == 1
     train_dir = tmp_path / "killed" / "data" / "train"

@@ -248,12 +248,12 @@ def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, t
 
     monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)  # the nodes choose their own
     here = _tiny_train_config(tmp_path, "here")
-    subprocess.run([sys.executable, "-m", "stages.dataset", "--config", here], cwd=ROOT, check=True,
+    subprocess.run([sys.executable, "-m", "stages.cli", "dataset", "--config", here], cwd=ROOT, check=True,
                    env={**os.environ, **ENV}, capture_output=True)
     two = _tiny_train_config(tmp_path, "two")
     shutil.copytree(tmp_path / "here" / "data", tmp_path / "two" / "data")  # the same dataset, built once
 
-    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.train", "--config"]
+    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.cli", "train", "--config"]
     assert subprocess.run([*one_host, here], cwd=ROOT, env={**os.environ, **ENV},
                           capture_output=True).returncode == 0
     for code, log in _train_on_two_hosts(hosts, two, tmp_path):
@@ -277,7 +277,7 @@ def test_a_node_whose_peer_never_joins_ends_within_the_timeout_not_torchs_30_min
     from tests.test_model import _tiny_train_config
 
     config = _tiny_train_config(tmp_path, "cut")
-    subprocess.run([sys.executable, "-m", "stages.dataset", "--config", config], cwd=ROOT, check=True,
+    subprocess.run([sys.executable, "-m", "stages.cli", "dataset", "--config", config], cwd=ROOT, check=True,
                    env={**os.environ, **ENV}, capture_output=True)
     began = time.monotonic()
     wait = {"DEEP_SSFR_DIST_TIMEOUT": "15"}
@@ -346,10 +346,10 @@ def _straight_and_cut(tmp_path: Path) -> tuple[str, str]:
         return str(path)
 
     straight, cut = longer("straight"), longer("cut")
-    subprocess.run([sys.executable, "-m", "stages.dataset", "--config", straight], cwd=ROOT, check=True,
+    subprocess.run([sys.executable, "-m", "stages.cli", "dataset", "--config", straight], cwd=ROOT, check=True,
                    env={**os.environ, **ENV}, capture_output=True)
     shutil.copytree(tmp_path / "straight" / "data", tmp_path / "cut" / "data")
-    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.train", "--config"]
+    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.cli", "train", "--config"]
     assert subprocess.run([*one_host, straight], cwd=ROOT, env={**os.environ, **ENV},
                           capture_output=True).returncode == 0
     return straight, cut
@@ -384,7 +384,7 @@ def _resumes_to_the_straight_run(hosts: Hosts, tmp_path: Path, straight: str, cu
 def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dict[str, str] | None = None,
                         env_there: dict[str, str] | None = None,
                         there_config: str | None = None) -> list[tuple[int, str]]:
-    """``torchrun -m stages.train`` over the two hosts (:func:`_start_on_two_hosts`) to its end; each
+    """``torchrun -m stages.cli train`` over the two hosts (:func:`_start_on_two_hosts`) to its end; each
     node's exit code and log."""
     procs, logs = _start_on_two_hosts(hosts, config, tmp_path, env_here, env_there, there_config)
     return [(proc.wait(timeout=240), log.read_text()) for proc, log in zip(procs, logs, strict=True)]
@@ -393,7 +393,7 @@ def _train_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dic
 def _start_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dict[str, str] | None = None,
                         env_there: dict[str, str] | None = None,
                         there_config: str | None = None) -> tuple[list[subprocess.Popen], list[Path]]:
-    """``torchrun -m stages.train`` started on the two hosts, one process each, from different folders
+    """``torchrun -m stages.cli train`` started on the two hosts, one process each, from different folders
     (``there_config``: the second node's config path, if another); the nodes and their logs. Each
     host's name resolves to another network here (as on a node with several, or Debian's
     127.0.1.1): each node names its address on the cluster's network, and the endpoint's node,
@@ -402,8 +402,8 @@ def _start_on_two_hosts(hosts: Hosts, config: str, tmp_path: Path, env_here: dic
     port = _free_port(hosts.here_ip)
     node = [str(BIN / "torchrun"), "--nnodes", "2", "--nproc_per_node", "1", "--rdzv-backend", "c10d",
             "--rdzv-endpoint", f"{hosts.here_ip}:{port}", "--rdzv-id", f"ssfr-{port}"]
-    train = ["-m", "stages.train", "--config", config]
-    there_train = ["-m", "stages.train", "--config", there_config or config]
+    train = ["-m", "stages.cli", "train", "--config", config]
+    there_train = ["-m", "stages.cli", "train", "--config", there_config or config]
     logs = [tmp_path / f"node0-{port}.log", tmp_path / f"node1-{port}.log"]
     procs = [hosts.start([*node, "--local-addr", hosts.here_ip, "--rdzv-conf", "is_host=1", *train], there=False,
                          env={**ENV, **(env_here or {})}, cwd=ROOT, log=logs[0]),

@@ -179,7 +179,7 @@ def _rotation(seed: int = 0) -> np.ndarray:
 def test_single_stretched_particle_splat_is_the_analytic_ellipsoid(ss):
     """Depth, coverage, chord thickness and normal of one rotated ellipsoid (semi-axes 50, 20 and
     8 mm) against the closed-form ray-quadric intersection."""
-    from pipeline.surface import Ellipsoids
+    from pipeline.ellipsoids import Ellipsoids
 
     cam = _camera(128, 30.0)
     q = _rotation(1)
@@ -216,7 +216,7 @@ def test_single_stretched_particle_splat_is_the_analytic_ellipsoid(ss):
 
 
 def test_two_overlapping_ellipsoids_keep_the_nearer_surface_and_its_normal(ss):
-    from pipeline.surface import Ellipsoids
+    from pipeline.ellipsoids import Ellipsoids
 
     cam = _camera(96, 30.0)
     flat = np.diag([1 / 0.04, 1 / 0.04, 1 / 0.01])   # a disc facing the camera

@@ -10,9 +10,10 @@ import pytest
 import yaml
 
 from pipeline.camera import camera_for_frame
-from pipeline.config import load
-from pipeline.evaluate.metrics import angular_errors, normal_mask
+from pipeline.config_files import load
+from pipeline.masks import normal_mask
 from pipeline.methods import refine
+from pipeline.metrics import angular_errors
 from pipeline.model import SHIPPED_WEIGHTS as SHIPPED
 from pipeline.model.data import input_channels
 from pipeline.model.inference import load_refiner

@@ -17,10 +17,10 @@ from tqdm import tqdm
 from pipeline.camera import camera_for_frame
 from pipeline.config import Config, SceneConfig
 from pipeline.device import warp_device
-from pipeline.evaluate.metrics import angular_errors, iou, summarize_angles
 from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, spread
 from pipeline.methods import method_maps, normal_source, refine, shade_frame
+from pipeline.metrics import angular_errors, iou, summarize_angles
 from pipeline.model.scale import median_radius_px
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace

@@ -23,7 +23,6 @@ from tqdm import tqdm
 
 from pipeline.cache import atomic_path
 from pipeline.config import MetaballConfig, to_dict
-from pipeline.evaluate.metrics import angular_errors, iou, summarize_angles
 from pipeline.metaball import decode_gbuffers
 from pipeline.metaball.dataset import training_pair
 from pipeline.metaball.networks import (
@@ -34,6 +33,7 @@ from pipeline.metaball.networks import (
     init_weights,
 )
 from pipeline.metaball.views import params_of
+from pipeline.metrics import angular_errors, iou, summarize_angles
 from pipeline.model.data import rotate_quarter
 from pipeline.model.train import TimeLimitReached, TrainingError
 from pipeline.plots import metaball_curves

@@ -160,17 +160,11 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
     """Angular error of refined and input (bilateral) normals against the mesh target.
 
     Pixels count where both the compared map and the target show fluid (refined pixels by
-    ``metrics.refined_mask``, as the renderer drops them). Returns the summary and the refined
+    ``masks.refined_mask``, as the renderer drops them). Returns the summary and the refined
     maps (for the PNG sheet).
     """
-    from pipeline.evaluate.metrics import (
-        REFINED_REACH_PX,
-        angular_errors,
-        iou,
-        normal_mask,
-        refined_mask,
-        summarize_angles,
-    )
+    from pipeline.masks import REFINED_REACH_PX, normal_mask, refined_mask
+    from pipeline.metrics import angular_errors, iou, summarize_angles
 
     refined_err, input_err, ious, preds = [], [], [], []
     for f in frames:

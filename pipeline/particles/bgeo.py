@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.particles import ParticleFormatError, ParticleFrame, frame_from_point_data
+from pipeline.particles.frame import ParticleFormatError, ParticleFrame, frame_from_point_data
 
 _TYPES = {0: ">f4", 1: ">i4", 5: ">f4"}
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.particles import ParticleFormatError, ParticleFrame, frame_from_point_data
+from pipeline.particles.frame import ParticleFormatError, ParticleFrame, frame_from_point_data
 
 _VTK_TYPES = {"float": "f4", "double": "f8", "int": "i4", "unsigned_int": "u4", "short": "i2",
               "unsigned_short": "u2", "char": "i1", "unsigned_char": "u1", "long": "i8",

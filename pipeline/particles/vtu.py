@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.particles import ParticleFormatError, ParticleFrame, frame_from_point_data
+from pipeline.particles.frame import ParticleFormatError, ParticleFrame, frame_from_point_data
 
 
 def read(path: Path) -> ParticleFrame:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.particles import ParticleFormatError, ParticleFrame
+from pipeline.particles.frame import ParticleFormatError, ParticleFrame
 
 
 def read(path: Path) -> ParticleFrame:

@@ -9,7 +9,6 @@ allocated once per image size and reused frame after frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -17,13 +16,11 @@ import warp as wp
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.device import download, on_torch_stream, torch_waits_for_warp, wait_for_downloads, warp_waits_for_torch
+from pipeline.ellipsoids import Ellipsoids
 from pipeline.parallel import Launcher
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
 from pipeline.vectors import host, is_tensor
-
-if TYPE_CHECKING:  # annotations only: the surface kernels use the screen kernels' pixel_ray
-    from pipeline.surface import Ellipsoids
 
 _EMPTY = 1.0e30
 FILTERS = ("gaussian", "bilateral", "nrf")

@@ -18,6 +18,7 @@ from skimage import measure
 
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
+from pipeline.ellipsoids import Ellipsoids
 from pipeline.parallel import Launcher
 from pipeline.sph import POLY6_NORM, anisotropy_support, lattice_offsets, particle_volume, spacing
 from pipeline.surface import kernels as K
@@ -230,18 +231,6 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
         front = wp.array(buffer.ravel(), dtype=float, device=device)
     launch(K.mark_near_front, n, [*view, front, float(depth_margin), near])
     return np.flatnonzero(near.numpy())
-
-
-@dataclass
-class Ellipsoids:
-    """Particles as ellipsoids |shapes[i] (x - centres[i])| <= 1 (world space), with the radii of
-    their bounding spheres: what ellipsoid splatting draws instead of spheres. Host arrays, or on a
-    GPU Warp arrays where the anisotropy made them (``particle_ellipsoids(on_device=True)``), which
-    the splat reads in place."""
-
-    centres: np.ndarray | wp.array   # N x 3
-    shapes: np.ndarray | wp.array    # N x 3 x 3, symmetric: the inverse of the semi-axis matrix (1/m)
-    bounds: np.ndarray | wp.array    # N (m)
 
 
 def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,

@@ -1,4 +1,5 @@
-"""Image metrics shared by training validation and the evaluate stage."""
+"""The refined method's mask rule: which pixels of a normal map show fluid. One rule for rendering,
+evaluation and the trainer's choice of its best checkpoint."""
 
 from __future__ import annotations
 
@@ -107,28 +108,3 @@ def refined_mask(normals: np.ndarray, fluid: np.ndarray, threshold: float = 0.5,
 
         within = torch.from_numpy(within).to(long_enough.device)
     return long_enough & within
-
-
-def angular_errors(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Angles in degrees between unit-normalised ``pred`` and ``target`` at ``mask`` pixels."""
-    a = pred[mask].astype(np.float64)
-    b = target[mask].astype(np.float64)
-    a /= np.maximum(length(a), 1e-12)[:, None]
-    b /= np.maximum(length(b), 1e-12)[:, None]
-    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
-
-
-def summarize_angles(errors: np.ndarray) -> dict[str, float]:
-    """Mean, median and shares under 5, 10 and 20 degrees."""
-    if errors.size == 0:
-        return {"mean_deg": float("nan"), "median_deg": float("nan"), "under_5": float("nan"),
-                "under_10": float("nan"), "under_20": float("nan"), "pixels": 0}
-    return {"mean_deg": float(errors.mean()), "median_deg": float(np.median(errors)),
-            "under_5": float((errors < 5).mean()), "under_10": float((errors < 10).mean()),
-            "under_20": float((errors < 20).mean()), "pixels": int(errors.size)}
-
-
-def iou(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection over union of two boolean masks (1 when both are empty)."""
-    union = np.logical_or(a, b).sum()
-    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
