@@ -3,8 +3,9 @@
 A key hashes the stage's resolved config fields, its inputs' keys, the device and a hash of the
 source files the stage runs, so editing a kernel, changing a parameter or changing an upstream
 result each lead to a new entry, while untouched upstream entries stay hits. Every file is written
-to a temporary name and renamed, so a killed stage leaves only whole files; per-frame outputs let
-it resume, and the manifest (written last) marks the entry complete.
+to a temporary name and renamed (``atomic_path``), so a killed stage leaves only whole files;
+per-frame outputs let it resume, and the manifest (written last) marks the entry complete. How
+writes from several processes and nodes stay safe is :mod:`pipeline.fencing`'s concern.
 """
 
 from __future__ import annotations
@@ -17,19 +18,18 @@ import importlib.util
 import json
 import logging
 import os
-import secrets
 import shutil
-import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline import fencing
+from pipeline.fencing import TMP_MARK, atomic_path, file_hash
+
 log = logging.getLogger("deep_ssfr")
 MANIFEST = "manifest.json"
-_TMP_MARK = ".tmp-"
+_HELD: set[Any] = set()  # the entry locks (filelock.FileLock) this process holds
 
 
 class CacheError(RuntimeError):
@@ -110,237 +110,6 @@ def make_key(payload: dict[str, Any]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
-JOURNAL = "journal.jsonl"
-"""The journal of the process that opened an entry; each worker process of a Ray run keeps its own
-beside it (``journal-<host>-<pid>-<random>.jsonl``), since appends from several NFS clients can interleave."""
-RUN_TOKEN = ".run-token"
-"""The token of the run that holds an entry, from ``begin`` to ``finish``: its workers' writes check
-it, so a worker that outlives its run (on a cut-off node, its task already run again elsewhere)
-writes nothing more into the entry."""
-
-
-@dataclass(frozen=True)
-class _Open:
-    """An entry this process writes into: its journal, and the run token its writes need."""
-
-    lock: threading.Lock
-    journal: str
-    token: str
-    owner: bool
-    """This process began the entry (and holds its lock); else it is a worker writing into another's."""
-
-
-_OPEN_ENTRIES: dict[Path, _Open] = {}  # the folders of the entries this process writes into
-_HELD: set[Any] = set()  # the entry locks (filelock.FileLock) this process holds
-
-
-class StaleWrite(RuntimeError):
-    """A worker's write into an entry whose run has finished or given way to another run."""
-
-
-def _holder(target: Path) -> tuple[Path, _Open] | None:
-    """The open entry whose folder holds ``target`` (a resolved path), if any."""
-    for folder, state in list(_OPEN_ENTRIES.items()):
-        if folder in target.parents:
-            return folder, state
-    return None
-
-
-def _fence(held: tuple[Path, _Open] | None, target: Path) -> None:
-    """Refuse a worker's write into an entry that its run no longer holds: the entry's run token is
-    gone (finished; a forced run's folder swapped in) or another's (the driver was killed and a new
-    run resumed). The owner's writes pass: it holds the lock."""
-    if held is None or held[1].owner:
-        return
-    folder, state = held
-    try:
-        token = (folder / RUN_TOKEN).read_text()
-    except FileNotFoundError:
-        token = ""
-    if token != state.token:
-        why = "another run has taken it over" if token else "its run has finished"
-        raise StaleWrite(f"{target}: not written, since {why} (a worker that outlived its run, its task "
-                         "run again elsewhere)")
-
-
-def _journal(held: tuple[Path, _Open] | None, target: Path) -> None:
-    """Append a finished file's size and hash (``target``, a resolved path) to the journal of the
-    open entry that holds it, so a resumed run can check the files of an unfinished entry as the
-    manifest checks a finished one."""
-    if held is None:
-        return
-    folder, state = held
-    line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
-                       "blake2b": file_hash(target)})
-    if state.owner:
-        with state.lock, open(folder / state.journal, "a") as fh:
-            fh.write(line + "\n")
-        return
-    # A worker's journal was made when it joined (journal_into) and is only appended to: one frozen
-    # after placing a file, thawed once its run finished or a new run took over (either drops the
-    # workers' journals), makes none anew in the entry (found in CI), its record refused instead.
-    try:
-        fd = os.open(folder / state.journal, os.O_WRONLY | os.O_APPEND)
-    except FileNotFoundError:
-        raise StaleWrite(f"{target}: not journaled, since its run has finished or been taken over (a worker "
-                         "that outlived its run)") from None
-    with state.lock, os.fdopen(fd, "a") as fh:
-        fh.write(line + "\n")
-
-
-def _journals(folder: Path) -> list[Path]:
-    """An entry's journals, the opener's first and then the workers' by age (a later record of a
-    file wins)."""
-    workers = sorted(folder.glob("journal-*.jsonl"), key=lambda p: (p.stat().st_mtime_ns, p.name))
-    return [p for p in [folder / JOURNAL] if p.exists()] + workers
-
-
-@functools.cache
-def _process_tag() -> str:
-    """This process's name among a cluster's: host, pid and a random part (containers on several
-    nodes may share a host name and pid)."""
-    import socket
-
-    return f"{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(4)}"
-
-
-def _close(folder: Path) -> None:
-    """Stop writing into the open entry at ``folder``: no more journal records, and, where this
-    process began it, its run token removed, so that its workers write nothing more there."""
-    state = _OPEN_ENTRIES.pop(folder, None)
-    if state is not None and state.owner:
-        (folder / RUN_TOKEN).unlink(missing_ok=True)
-
-
-def open_entries() -> list[tuple[Path, str]]:
-    """The folders of the entries this process has begun and not finished, with their run tokens
-    (for :func:`journal_into` in the workers it starts)."""
-    return [(folder, state.token) for folder, state in _OPEN_ENTRIES.items() if state.owner]
-
-
-@contextmanager
-def journal_into(entries: list[tuple[Path, str]]) -> Iterator[None]:
-    """Write into ``entries`` (folders and run tokens from :func:`open_entries`), entries another
-    process opened (a Ray task writing into its driver's entry): the files finished there go into a
-    journal of this process's own, so a resumed run checks them as it checks the driver's, and none
-    is written once the entry's run no longer holds it (:data:`RUN_TOKEN`)."""
-    mine = [(Path(f), token) for f, token in entries if Path(f) not in _OPEN_ENTRIES]
-    name = f"journal-{_process_tag()}.jsonl"
-    for folder, token in mine:
-        state = _OPEN_ENTRIES[folder] = _Open(threading.Lock(), name, token, owner=False)
-        with suppress(StaleWrite):  # a run already over: the writes are refused one by one
-            _join((folder, state))
-    try:
-        yield
-    finally:
-        for folder, _ in mine:
-            _OPEN_ENTRIES.pop(folder, None)
-
-
-def _join(held: tuple[Path, _Open]) -> None:
-    """Make a worker's journal in the entry it joins, the only place one is made (``_journal`` only
-    appends), and only while the entry's run holds it: checked before and again after, since a worker
-    frozen between the first check and the file, thawed once its run finished (the workers' journals
-    dropped), would otherwise leave an empty journal in the finished entry."""
-    folder, state = held
-    journal = folder / state.journal
-    _fence(held, folder)
-    try:
-        journal.touch()
-    except FileNotFoundError:  # the folder of a forced run, swapped in meanwhile
-        _fence(held, folder)
-        raise
-    try:
-        _fence(held, folder)
-    except StaleWrite:
-        journal.unlink(missing_ok=True)
-        raise
-
-
-def _staging(folder: Path) -> Path:
-    """Where the writes into the open entry at ``folder`` keep their temporaries until the rename:
-    beside the stage folders (``<root>/.staging/<stage>/<entry>/``), on the entry's file system but
-    outside every entry, so a write that is refused or cut short leaves the entry as it was."""
-    return folder.parent.parent / ".staging" / folder.parent.name / folder.name
-
-
-_MKDIR_TRIES = 20
-"""Each retry of :func:`_make_folder` means another run emptied and dropped a parent in the
-instant between two mkdirs: a handful in a row is already unlikely."""
-
-
-def _make_folder(folder: Path) -> None:
-    """``folder`` and its parents, made again where another run removed an empty parent between
-    two of the steps (a run that finishes an entry of the same stage drops ``.staging/<stage>/``
-    once it is empty: :meth:`CacheEntry._drop_temporaries`)."""
-    for _ in range(_MKDIR_TRIES - 1):
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            return
-        except FileNotFoundError:
-            continue
-    folder.mkdir(parents=True, exist_ok=True)
-
-
-def _place(tmp: Path, target: Path, held: tuple[Path, _Open] | None) -> None:
-    """Put a finished temporary at ``target``. A worker links it there, which never replaces a file:
-    one frozen between its last check and here, thawed as its run finishes, finds the file its task
-    run again elsewhere wrote and is refused, leaving that file as it was. Only a file already there
-    while its run still holds the entry (a frame half done before a kill) is replaced."""
-    if held is None or held[1].owner:
-        os.replace(tmp, target)
-        return
-    try:
-        os.link(tmp, target)
-    except FileExistsError:
-        _fence(held, target)
-        os.replace(tmp, target)
-    except OSError as exc:
-        if exc.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP):
-            raise
-        os.replace(tmp, target)  # a file system without hard links
-    else:
-        tmp.unlink()
-
-
-@contextmanager
-def atomic_path(target: Path) -> Iterator[Path]:
-    """Yield a temporary path; on success put it at ``target`` (:func:`_place`), else delete it.
-    Outside an open entry the temporary is a sibling; inside one it is staged outside the entry (a
-    frozen worker thawed after its run finished, found in CI, wrote its temporary into the finished
-    entry, and only then was refused). Inside an entry another process opened, the write is refused
-    (:class:`StaleWrite`) once that run no longer holds it, checked before the write and again
-    before the file is put in place, and the target's folder is made only after the second check."""
-    target = Path(target)
-    where = target.resolve()
-    held = _holder(where)
-    _fence(held, target)
-    if held is None:
-        home, name = target.parent, target.name
-    else:  # the path inside the entry in the name, so that two targets of one name stay apart
-        home, name = _staging(held[0]), "%".join(where.relative_to(held[0]).parts)
-    _make_folder(home)
-    tmp = home / f".{name}{_TMP_MARK}{os.getpid()}-{threading.get_ident()}"
-    try:
-        yield tmp
-        _fence(held, target)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        _place(tmp, target, held)
-        _journal(held, where)
-        log.debug("wrote %s", target)  # one event per finished file (tests kill runs on them)
-    except OSError as exc:
-        try:  # a write whose run finished meanwhile, its staged temporaries dropped, is refused
-            _fence(held, target)
-        except StaleWrite as stale:
-            raise stale from exc
-        if exc.filename is None:  # a writer that does not say which file: this one
-            raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from exc
-        raise
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def write_json_atomic(path: Path, payload: Any) -> None:
     """Write JSON through a temporary file and rename."""
     with atomic_path(path) as tmp:
@@ -351,15 +120,6 @@ STAGES = ("simulate", "dataset", "train", "render", "evaluate")
 
 # Check the recorded hash of every output of a finished entry, not only its size (``--verify``).
 VERIFY_HASHES = False
-
-
-def file_hash(path: Path) -> str:
-    """BLAKE2b (128-bit) of a file's bytes: what ``--verify`` compares with the manifest."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        while chunk := fh.read(1 << 20):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def write_failure(folder: Path, fallback: str) -> tuple[int, str]:
@@ -467,29 +227,12 @@ class CacheEntry:
                 shutil.rmtree(old)  # a killed forced run's half-built folder
             self.building = self.final_dir.with_name(f"{self.final_dir.name}.new-{os.getpid()}")
         self.dir.mkdir(parents=True, exist_ok=True)
-        token = secrets.token_hex(8)  # from now on a worker of an earlier, killed run writes nothing here
-        with atomic_path(self.dir / RUN_TOKEN) as tmp:
-            tmp.write_text(token)
+        token = fencing.claim(self.dir)
         self._drop_temporaries()
-        if journals := _journals(self.dir):
-            records: dict[str, dict] = {}
-            for journal in journals:
-                for line in journal.read_text().splitlines():
-                    try:
-                        rec = json.loads(line)
-                    except json.JSONDecodeError:
-                        continue  # a line cut short by a kill: its file is checked by the stage
-                    records[rec["file"]] = rec
-            self._drop_damaged(records)
-            # one journal again, of the files that passed, so that the next resume reads them in order
-            kept = "".join(json.dumps(r) + "\n" for name, r in records.items() if (self.dir / name).exists())
-            tmp = self.dir / f".{JOURNAL}{_TMP_MARK}{os.getpid()}"
-            tmp.write_text(kept)
-            os.replace(tmp, self.dir / JOURNAL)
-            for worker in journals:
-                if worker.name != JOURNAL:
-                    worker.unlink()
-        _OPEN_ENTRIES[self.dir.resolve()] = _Open(threading.Lock(), JOURNAL, token, owner=True)
+        records = fencing.journal_records(self.dir)
+        self._drop_damaged(records)
+        fencing.rewrite_journal(self.dir, {n: r for n, r in records.items() if (self.dir / n).exists()})
+        fencing.open_entry(self.dir, token)
         return True
 
     def _lock(self) -> None:
@@ -509,26 +252,26 @@ class CacheEntry:
     def release(self) -> None:
         """Give up the entry's lock (``finish`` does; a stage that stops early may): the files this
         process writes there from now on are no longer journaled, and its workers' are refused."""
-        _close(self.dir.resolve())
+        fencing.close(self.dir.resolve())
         if self.held is not None:
             self.held.release(force=True)
             _HELD.discard(self.held)
             self.held = None
 
     def _drop_temporaries(self) -> None:
-        """Delete the entry's temporary files, staged (:func:`_staging`) and in the folder: a killed
+        """Delete the entry's temporary files, staged (:func:`pipeline.fencing.staging`) and in the folder: a killed
         run's or worker's, never a live one's, since the caller holds the entry's lock and no write
         of its own is under way. The staging folders above it go too once empty: ``rmdir`` drops
         only an empty folder, so another entry's staged files keep theirs, and a run making its own
-        in between makes the parents again (:func:`_make_folder`)."""
-        staged = _staging(self.dir.resolve())
+        in between makes the parents again (:func:`pipeline.fencing.make_folder`)."""
+        staged = fencing.staging(self.dir.resolve())
         shutil.rmtree(staged, ignore_errors=True)
         for parent in (staged.parent, staged.parent.parent):  # .staging/<stage>/, then .staging/
             try:
                 parent.rmdir()
             except OSError:  # not empty (another entry's writes), or gone already
                 break
-        for stale in self.dir.rglob(f"*{_TMP_MARK}*"):
+        for stale in self.dir.rglob(f"*{TMP_MARK}*"):
             stale.unlink(missing_ok=True)
 
     def _drop_damaged(self, checks: dict[str, dict]) -> bool:
@@ -553,7 +296,7 @@ class CacheEntry:
 
     def finish(self, files: list[str], timings: dict | None = None, **extra: Any) -> None:
         """Write the manifest last: config, inputs, code version, timings and files."""
-        _close(self.dir.resolve())  # first: the run's workers write nothing more here
+        fencing.close(self.dir.resolve())  # first: the run's workers write nothing more here
         payload = {
             "stage": self.stage,
             "name": self.name,
@@ -566,8 +309,7 @@ class CacheEntry:
             **extra,
         }
         write_json_atomic(self.dir / MANIFEST, payload)
-        for journal in _journals(self.dir):
-            journal.unlink()
+        fencing.drop_journals(self.dir)
         self._drop_temporaries()  # of workers killed mid-write (a lost Ray node's, its task run again)
         if self.building is not None:  # swap the rebuilt folder in; readers saw the old one until now
             old = self.final_dir.with_name(f"{self.final_dir.name}.old-{os.getpid()}")
@@ -581,8 +323,8 @@ class CacheEntry:
 
 def release_all() -> None:
     """Give up every entry lock this process holds (a stage that failed half way holds its own)."""
-    for folder in [f for f, state in _OPEN_ENTRIES.items() if state.owner]:
-        _close(folder)
+    for folder, _ in fencing.open_entries():
+        fencing.close(folder)
     for lock in list(_HELD):
         lock.release(force=True)
     _HELD.clear()
@@ -613,7 +355,7 @@ def publish(source: Path, target: Path) -> None:
     have, want = (target.stat() if target.exists() else None), source.stat()
     if have is not None and (have.st_size, have.st_mtime_ns) == (want.st_size, want.st_mtime_ns):
         return
-    tmp = target.with_name(f".{target.name}{_TMP_MARK}{os.getpid()}")
+    tmp = target.with_name(f".{target.name}{TMP_MARK}{os.getpid()}")
     try:
         shutil.copy2(source, tmp)  # the time too, so an untouched copy is recognised next time
         os.replace(tmp, target)

@@ -30,7 +30,7 @@ from typing import Any, TypeVar
 
 from tqdm import tqdm
 
-from pipeline import cache
+from pipeline import fencing
 
 log = logging.getLogger("deep_ssfr")
 T = TypeVar("T")
@@ -168,7 +168,7 @@ def run_tasks(fn: Callable[[T], R], tasks: Sequence[T], executor: str = "local",
             each = f", {options['num_cpus']:g} a task" if cpus != 1 else ""
         log.info("ray: %d tasks on %s (%d node%s, %g CPUs%s)", len(tasks), where, len(alive),
                  "s" * (len(alive) != 1), have.get("CPU", 0), each)
-        entries = cache.open_entries()
+        entries = fencing.open_entries()
 
         def journaled(task: T) -> tuple[str, R]:  # a function, not a partial: ray.remote takes only functions
             return _journaled(fn, entries, task)
@@ -333,12 +333,12 @@ def cluster_slots(executor: str, device: str = "cpu", address: str = "") -> int:
 
 def _journaled(fn: Callable[[T], R], entries: list[tuple[Any, str]], task: T) -> tuple[str, R]:
     """``fn(task)`` in a Ray worker, with the address of the node it ran on; its finished files
-    inside the driver's open cache entries journaled there (:func:`pipeline.cache.journal_into`), so
+    inside the driver's open cache entries journaled there (:func:`pipeline.fencing.journal_into`), so
     a resume after a kill checks them, and refused once the driver's run no longer holds them (a
     worker on a cut-off node that outlives it)."""
     import ray
 
-    with cache.journal_into(entries):
+    with fencing.journal_into(entries):
         return ray.util.get_node_ip_address(), fn(task)
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline import cache
+from pipeline import cache, fencing
 from pipeline.config_files import load
 from pipeline.frames import load_frame
 from stages import cli, simulate
@@ -143,10 +143,10 @@ def test_corrupt_cache_file_is_named(tiny_dam, capsys):
 WORKER = """if True:
     import sys
     from pathlib import Path
-    from pipeline import cache
+    from pipeline import cache, fencing
 
     folder = Path(sys.argv[1])
-    with cache.journal_into([(folder, sys.argv[2])]):
+    with fencing.journal_into([(folder, sys.argv[2])]):
         for name in sys.argv[3:]:
             with cache.atomic_path(folder / name) as tmp:
                 tmp.write_bytes(name.encode() * 50)
@@ -163,7 +163,7 @@ def test_files_a_worker_process_writes_into_an_open_entry_are_checked_on_resume(
     assert entry.begin()
     with cache.atomic_path(entry.path("driver.bin")) as tmp:
         tmp.write_bytes(b"d" * 100)
-    ((folder, token),) = cache.open_entries()
+    ((folder, token),) = fencing.open_entries()
     assert folder == entry.dir.resolve()
     for names in (["a.bin", "b.bin"], ["c.bin"]):  # two workers, as two Ray tasks
         subprocess.run([sys.executable, "-c", WORKER, str(folder), token, *names], cwd=ROOT, check=True)
@@ -190,8 +190,8 @@ def test_files_a_worker_process_writes_into_an_open_entry_are_checked_on_resume(
 KILLED_MID_WRITE = """
 import os, sys
 from pathlib import Path
-from pipeline import cache
-with cache.journal_into([(Path(sys.argv[1]), sys.argv[2])]):
+from pipeline import cache, fencing
+with fencing.journal_into([(Path(sys.argv[1]), sys.argv[2])]):
     with cache.atomic_path(Path(sys.argv[1]) / "half.bin") as tmp:
         tmp.write_bytes(b"h" * 10)
         os.kill(os.getpid(), 9)
@@ -203,7 +203,7 @@ def test_a_worker_killed_mid_write_leaves_no_temporary_in_the_finished_entry(tmp
     same run: the finished entry holds its files and none of the dead worker's temporaries."""
     entry = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
     assert entry.begin()
-    ((folder, token),) = cache.open_entries()
+    ((folder, token),) = fencing.open_entries()
     killed = subprocess.run([sys.executable, "-c", KILLED_MID_WRITE, str(folder), token], cwd=ROOT)
     assert killed.returncode == -9
     staged = tmp_path / ".staging" / "dataset" / folder.name
@@ -260,12 +260,12 @@ def test_a_write_whose_staging_parent_another_run_drops_midway_makes_it_again(tm
 LATE = """if True:
     import sys
     from pathlib import Path
-    from pipeline import cache
+    from pipeline import cache, fencing
 
     folder = Path(sys.argv[1])
     pause = sys.argv[3:]
     if pause == ["pause-late"]:  # frozen past the second check, just before the rename
-        fence, checks = cache._fence, []
+        fence, checks = fencing._fence, []
 
         def _fence(*args):
             fence(*args)
@@ -274,9 +274,9 @@ LATE = """if True:
                 print("checked twice", flush=True)
                 sys.stdin.readline()
 
-        cache._fence = _fence
+        fencing._fence = _fence
     if pause == ["pause-join"]:  # frozen as it joins the entry, past the check, before its journal
-        fence, calls = cache._fence, []
+        fence, calls = fencing._fence, []
 
         def _fence(*args):
             fence(*args)
@@ -285,16 +285,16 @@ LATE = """if True:
                 print("joining", flush=True)
                 sys.stdin.readline()
 
-        cache._fence = _fence
+        fencing._fence = _fence
     if pause == ["pause-placed"]:  # frozen once its file is in place, before its journal record
-        journal = cache._journal
+        journal = fencing._journal
 
         def _journal(*args):
             print("placed", flush=True)
             sys.stdin.readline()
             journal(*args)
 
-        cache._journal = _journal
+        fencing._journal = _journal
     if pause == ["no-links"]:  # a file system without hard links (some FUSE and SMB mounts)
         import errno
         import os
@@ -303,14 +303,14 @@ LATE = """if True:
             raise OSError(errno.EPERM, "Operation not permitted")
 
         os.link = _link
-    with cache.journal_into([(folder, sys.argv[2])]):
+    with fencing.journal_into([(folder, sys.argv[2])]):
         try:
             with cache.atomic_path(folder / "views" / "late.bin") as tmp:
                 if pause == ["pause"]:  # frozen past the first check until told to go on
                     print("checked", flush=True)
                     sys.stdin.readline()
                 tmp.write_bytes(b"late")
-        except cache.StaleWrite as exc:
+        except fencing.StaleWrite as exc:
             print(exc)
 """
 
@@ -328,7 +328,7 @@ def _paused_write(tmp_path: Path, pause: str, force: bool = False
     sent a line."""
     first = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
     assert first.begin(force=force)
-    ((folder, token),) = cache.open_entries()
+    ((folder, token),) = fencing.open_entries()
     worker = subprocess.Popen([sys.executable, "-c", LATE, str(folder), token, pause], cwd=ROOT,
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert worker.stdout is not None
@@ -360,7 +360,7 @@ def test_a_write_frozen_past_its_last_check_leaves_the_file_its_rerun_wrote(tmp_
     with cache.atomic_path(first.path("views/late.bin")) as tmp:  # the task again, on another node
         tmp.write_bytes(b"late")
     rerun = first.path("views/late.bin").stat()
-    (folder / cache.RUN_TOKEN).unlink()  # finish's first step: the run holds the entry no more
+    (folder / fencing.RUN_TOKEN).unlink()  # finish's first step: the run holds the entry no more
     out, _ = worker.communicate("go\n", timeout=60)
     assert "its run has finished" in out
     now = first.path("views/late.bin").stat()
@@ -406,7 +406,7 @@ def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
 
     first = entry()
     assert first.begin()
-    ((folder, token),) = cache.open_entries()
+    ((folder, token),) = fencing.open_entries()
     assert _late_write(folder, token) == "", "a worker of the live run writes"
     assert first.path("views/late.bin").read_bytes() == b"late"
     written = first.path("views/late.bin").stat().st_ino
@@ -418,7 +418,7 @@ def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
     first.release()  # the driver is killed; a new run resumes the entry
     second = entry()
     assert second.begin()
-    ((_, token2),) = cache.open_entries()
+    ((_, token2),) = fencing.open_entries()
     assert token2 != token
     first.path("views/late.bin").unlink()
     assert "another run has taken it over" in _late_write(folder, token)
@@ -429,7 +429,7 @@ def test_a_worker_that_outlives_its_run_writes_nothing_into_the_entry(tmp_path):
 
     forced = entry()
     assert forced.begin(force=True)
-    ((building, token3),) = cache.open_entries()
+    ((building, token3),) = fencing.open_entries()
     assert building.name.startswith(f"{folder.name}.new-")
     forced.finish([])
     assert "its run has finished" in _late_write(building, token3)

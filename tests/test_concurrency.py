@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.cache import CacheEntry, _staging, read_json
+from pipeline.cache import CacheEntry, read_json
 from pipeline.exr import read_exr
+from pipeline.fencing import staging
 from tests.conftest import ROOT, on_writes
 
 
@@ -29,7 +30,7 @@ def _whole(folder) -> None:
     manifest = read_json(folder / "manifest.json")
     for name, check in manifest["checks"].items():
         assert (folder / name).stat().st_size == check["size"], name
-    staged = _staging(folder.resolve())
+    staged = staging(folder.resolve())
     assert not [p for p in [*folder.rglob("*"), *staged.rglob("*")] if ".tmp-" in p.name]
 
 

@@ -344,7 +344,7 @@ def test_two_stages_killed_at_random_points_resume_to_a_clean_run(tmp_path):
     patterns = {"simulate": "frame_*.npz", "dataset": "*/frame_*.exr"}
     interrupted = 0
     for stage, pattern in patterns.items():
-        cmd = [sys.executable, "-m", f"stages.{stage}", "--config"]
+        cmd = [sys.executable, "-m", "stages.cli", stage, "--config"]
         assert subprocess.run(cmd + [str(clean)], cwd=ROOT, env=env, capture_output=True).returncode == 0
         total = len(list((clean.parent / "data" / stage).glob(f"*/{pattern}")))
         for _ in range(2):

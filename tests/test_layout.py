@@ -9,7 +9,8 @@ from tests.conftest import ROOT
 
 # Low to high; a module may import its own layer or lower ones. The longest matching prefix decides.
 LAYERS = (
-    ("foundation", ("pipeline", "pipeline.config", "pipeline.config_files", "pipeline.cache", "pipeline.sph",
+    ("foundation", ("pipeline", "pipeline.config", "pipeline.config_files", "pipeline.cache", "pipeline.fencing",
+                    "pipeline.sph",
                     "pipeline.vectors", "pipeline.timing", "pipeline.device", "pipeline.resources", "pipeline.exr",
                     "pipeline.frames", "pipeline.particles", "pipeline.camera", "pipeline.writer", "pipeline.media",
                     "pipeline.profiling", "pipeline.plots", "pipeline.executor", "pipeline.parallel", "pipeline.gang",
