@@ -9,7 +9,7 @@ import importlib
 import pytest
 import warp as wp
 
-MODULES = ["pipeline.sim.kernels", "pipeline.screen.kernels", "pipeline.surface.kernels",
+MODULES = ["pipeline.sim.kernels", "pipeline.sim.native", "pipeline.screen.kernels", "pipeline.surface.kernels",
            "pipeline.shading.kernels", "pipeline.metaball.kernels"]
 
 

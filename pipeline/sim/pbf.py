@@ -1,4 +1,5 @@
-"""Position Based Fluids solver (Macklin & Mueller 2013) driving the kernels in ``kernels.py``.
+"""Position Based Fluids solver (Macklin & Mueller 2013) driving the kernels in ``kernels.py`` (the physics)
+and ``native.py`` (the CPU fast path).
 
 Each step: predict under gravity, cell sort (particles are reordered into grid order so a
 neighbour walk touches nearby memory), one half neighbour list (each pair once), ``iterations``
@@ -6,7 +7,7 @@ density-constraint solves with collision projection, then velocity from the posi
 vorticity confinement and XSPH viscosity. Pair passes scatter to both particles of a pair and a
 per-particle pass finishes each quantity, the two fused block by block in two phases per pass (even
 blocks, then odd ones; no zeroing passes). On the CPU all of a step's passes run as one gang launch
-per thread (``K.step_passes``), the phases separated by native barriers; on CUDA, or with
+per thread (``N.step_passes``), the phases separated by native barriers; on CUDA, or with
 ``gang = False``, pass by pass through ``Launcher.scatter_passes``, with the same sums. Emitters add
 layers of particles on a schedule fixed by the step index, so a run resumed from a saved frame
 continues exactly as an uninterrupted one.
@@ -23,6 +24,7 @@ import warp as wp
 from pipeline.config import SceneConfig, SimulateConfig
 from pipeline.parallel import Launcher
 from pipeline.sim import kernels as K
+from pipeline.sim import native as N
 from pipeline.sim.seeding import EmitterSchedule, lattice_rest_sum, seed_fluid, wall_density_table
 from pipeline.sph import poly6_coefficient, spacing
 
@@ -144,7 +146,7 @@ class PBFSolver:
         # (start, end) of the pair-pass blocks (``Launcher.scatter_blocks``: at most 2 x BLOCKS_PER_THREAD a thread)
         self.block_bounds = wp.zeros(2 * BLOCKS_PER_THREAD * self.launch.threads, dtype=wp.vec2i, device=dev)
         self.pass_constants = self._pass_constants()
-        self._arrangements: dict[tuple[int, ...], K.PassArrays] = {}
+        self._arrangements: dict[tuple[int, ...], N.PassArrays] = {}
         # Dense grid of cells of width h over the container.
         extent = np.asarray(self.scene.domain_hi) - np.asarray(self.scene.domain_lo)
         self.cell_width = self.h / CELLS_PER_H
@@ -224,7 +226,7 @@ class PBFSolver:
                                               self.neighbour_end, self.neighbour_index])
             return [(0, n)]
         self.neighbour_cursor.zero_()
-        launch(K.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
+        launch(N.find_neighbours, n, [self.x_pred, self.cell_start, *grid, CELLS_PER_H, self.h, p.max_neighbours,
                                       int(self.vector_scan), int(launch.cpu), self.neighbour_cursor,
                                       self.neighbour_count, self.neighbour_span, self.neighbour_start,
                                       self.neighbour_end, self.neighbour_index])
@@ -257,10 +259,10 @@ class PBFSolver:
         self.particle_x, self.x_pred = self.x_pred, self.particle_x
         self.step_index += 1
 
-    def _pass_constants(self) -> K.PassConstants:
+    def _pass_constants(self) -> N.PassConstants:
         """The scalars of the pair passes, as the gang kernel takes them."""
         p = self.params
-        c = K.PassConstants()
+        c = N.PassConstants()
         c.iterations = p.iterations
         c.h, c.poly6_coef, c.spiky_coef = self.h, self.poly6_coef, self.spiky_coef
         c.mass, c.vol = self.mass, self.mass / p.rest_density
@@ -271,14 +273,14 @@ class PBFSolver:
         return c
 
     def _gang_passes(self, blocks: list[tuple[int, int]]) -> None:
-        """Every pair pass of the step as one gang launch (the CPU): ``K.step_passes``."""
+        """Every pair pass of the step as one gang launch (the CPU): ``N.step_passes``."""
         bounds = self.block_bounds.numpy()  # a view of the CPU array
         bounds[: len(blocks)] = [(start, start + count) for start, count in blocks]
         passes = 2 * self.params.iterations + 2
-        self.launch.gang(K.step_passes, 2 * passes + 1, [self.block_bounds, len(blocks), self.pass_constants,
+        self.launch.gang(N.step_passes, 2 * passes + 1, [self.block_bounds, len(blocks), self.pass_constants,
                                                          self._pass_arrays()])
 
-    def _pass_arrays(self) -> K.PassArrays:
+    def _pass_arrays(self) -> N.PassArrays:
         """The pair passes' arrays as they stand this step (the buffers trade places from step to step;
         each arrangement gets one struct, so a recorded launch replays with the right arrays)."""
         arrays = {"x_pred": self.x_pred, "particle_x": self.particle_x, "v_tmp": self.v_tmp,
@@ -292,7 +294,7 @@ class PBFSolver:
         key = tuple(id(a) for a in arrays.values())
         struct = self._arrangements.get(key)
         if struct is None:
-            struct = self._arrangements[key] = K.PassArrays()
+            struct = self._arrangements[key] = N.PassArrays()
             for name, array in arrays.items():
                 setattr(struct, name, array)
         return struct
@@ -330,26 +332,26 @@ class PBFSolver:
         passes = []
         for it in range(p.iterations):
             passes.append((
-                K.density_pairs, [self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
+                N.density_pairs, [self.x_pred, *nb, self.h, self.poly6_coef, self.spiky_coef, self.mass, vol,
                                   p.artificial_pressure_k, 1.0 / self.corr_w_dq, p.artificial_pressure_n, self.pair,
                                   self.acc4, self.acc1],
-                K.density_finish, [self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
+                N.density_finish, [self.x_pred, self.acc4, self.acc1, self.h, self.self_density, vol, p.rest_density,
                                    p.relaxation, self.lo, self.hi, self.wall_table, *obstacles,
                                    self.particle_rho, self.particle_lambda, self.wall_grad]))
             passes.append((
-                K.correction_pairs, [self.particle_lambda, *nb, self.pair, self.acc3a],
-                K.correction_finish, [self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds,
+                N.correction_pairs, [self.particle_lambda, *nb, self.pair, self.acc3a],
+                N.correction_finish, [self.x_pred, self.particle_lambda, self.acc3a, self.wall_grad, *bounds,
                                       *obstacles, self.particle_x, 1.0 / self.dt, int(it == p.iterations - 1),
                                       self.v_tmp]))
         passes.append((
-            K.vorticity_pairs, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol, self.pair,
+            N.vorticity_pairs, [self.x_pred, self.v_tmp, *nb, self.h, self.poly6_coef, self.spiky_coef, vol, self.pair,
                                 self.particle_omega],
-            K.vorticity_finish, [self.particle_omega, self.particle_rho, self.mass, self.omega_length,
+            N.vorticity_finish, [self.particle_omega, self.particle_rho, self.mass, self.omega_length,
                                  self.particle_vol]))
         passes.append((
-            K.viscosity_pairs, [self.v_tmp, self.omega_length, self.particle_vol, *nb, self.pair, self.acc3a,
+            N.viscosity_pairs, [self.v_tmp, self.omega_length, self.particle_vol, *nb, self.pair, self.acc3a,
                                 self.acc3b],
-            K.viscosity_finish, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b, p.vorticity_epsilon,
+            N.viscosity_finish, [self.v_tmp, self.particle_omega, self.acc3a, self.acc3b, p.vorticity_epsilon,
                                  p.xsph_viscosity, self.dt, self.particle_v]))
         return passes
 
