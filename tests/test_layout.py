@@ -86,3 +86,10 @@ def test_the_import_graph_has_no_cycle():
 
     for node in sorted(graph):
         visit(node, [])
+
+
+def test_no_source_file_is_over_800_lines():
+    """A file a reader can hold in mind: past 800 lines a module holds more than one idea."""
+    long = [f"{p.relative_to(ROOT)}: {n} lines" for folder in ("pipeline", "stages", "benchmarks", "tests")
+            for p in sorted((ROOT / folder).rglob("*.py")) if (n := len(p.read_text().splitlines())) > 800]
+    assert not long, "\n".join(long)
