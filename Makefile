@@ -36,12 +36,16 @@ $(VENV)/.installed: pyproject.toml $(VENV)/.apt-checked
 	$(PY) -m pip install -q -e '.[dev]'
 	@touch $@
 
+# two workers, a test file each at a time: a module's cluster and hosts stay in one process, and the
+# many tests that wait on timeouts and other processes overlap the ones that compute
+PYTEST := $(PY) -m pytest -q -n 2 --dist loadfile
+
 test: setup
-	$(PY) -m pytest -q
+	$(PYTEST)
 
 # the inner loop: every test but the end-to-end stage runs and multi-process fault tests
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -237,32 +237,23 @@ def _same_exrs(a_root: Path, b_root: Path, count: int) -> None:
         assert (a / f).read_bytes() == (b / f).read_bytes(), f
 
 
-def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, tmp_path, monkeypatch):
+def test_torchrun_over_two_hosts_trains_what_two_processes_on_one_train(hosts, straight, tmp_path, monkeypatch):
     """``make train-ddp`` with the multi-node TORCHRUN_ARGS of docs/training_at_scale.md, one process
     a host, gives the checkpoint that two processes on one host give, bit for bit (the ranks, not the
     hosts, split the batches), and rank 0 alone writes it."""
     import torch
 
     from pipeline.model.inference import load_refiner
-    from tests.test_model import _tiny_train_config
 
     monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)  # the nodes choose their own
-    here = _tiny_train_config(tmp_path, "here")
-    subprocess.run([sys.executable, "-m", "stages.cli", "dataset", "--config", here], cwd=ROOT, check=True,
-                   env={**os.environ, **ENV}, capture_output=True)
-    two = _tiny_train_config(tmp_path, "two")
-    shutil.copytree(tmp_path / "here" / "data", tmp_path / "two" / "data")  # the same dataset, built once
-
-    one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.cli", "train", "--config"]
-    assert subprocess.run([*one_host, here], cwd=ROOT, env={**os.environ, **ENV},
-                          capture_output=True).returncode == 0
+    two = _copy_of(straight, tmp_path, "two")
     for code, log in _train_on_two_hosts(hosts, two, tmp_path):
         assert code == 0, log[-3000:]
-    (a,) = (tmp_path / "here" / "data" / "train").glob("*/last.pt")
+    (a,) = (straight.parent / "data" / "train").glob("*/last.pt")
     (b,) = (tmp_path / "two" / "data" / "train").glob("*/last.pt")
     assert a.parent.name == b.parent.name
     one, two_hosts_state = torch.load(a, weights_only=True), torch.load(b, weights_only=True)
-    assert [h["processes"] for h in two_hosts_state["history"]] == [2, 2]
+    assert [h["processes"] for h in two_hosts_state["history"]] == [2, 2, 2, 2]
     for k, v in one["generator"].items():
         assert torch.equal(v, two_hosts_state["generator"][k]), k
     assert load_refiner(b.parent / "best.pt").splat == "ellipsoid"
@@ -291,11 +282,12 @@ def test_a_node_whose_peer_never_joins_ends_within_the_timeout_not_torchs_30_min
     assert not list((tmp_path / "cut" / "data" / "train").glob("*/manifest.json"))
 
 
-def test_a_node_killed_mid_training_ends_the_other_and_both_resume_to_a_straight_runs_weights(hosts, tmp_path):
+def test_a_node_killed_mid_training_ends_the_other_and_both_resume_to_a_straight_runs_weights(hosts, straight,
+                                                                                            tmp_path):
     """The second node's torchrun and worker SIGKILLed after an epoch: the first node's run ends with
     the stage's error instead of waiting, and the same two commands again resume from the last
     checkpoint to the weights a straight two-process run trains, bit for bit."""
-    straight, cut = _straight_and_cut(tmp_path)
+    cut = _copy_of(straight, tmp_path, "cut")
     wait = {"DEEP_SSFR_DIST_TIMEOUT": "60"}
     procs, logs = _start_on_two_hosts(hosts, cut, tmp_path, wait, wait)
     _wait_for_an_epoch(procs, tmp_path / "cut")
@@ -309,12 +301,12 @@ def test_a_node_killed_mid_training_ends_the_other_and_both_resume_to_a_straight
     _resumes_to_the_straight_run(hosts, tmp_path, straight, cut)
 
 
-def test_nodes_cut_off_mid_training_end_within_the_timeout_and_resume_once_joined_again(hosts, tmp_path):
+def test_nodes_cut_off_mid_training_end_within_the_timeout_and_resume_once_joined_again(hosts, straight, tmp_path):
     """The link between the nodes goes down after an epoch: packets are dropped and no connection is
     closed, as when a switch fails or a node loses power. Each node's run ends with the stage's error
     once ``DEEP_SSFR_DIST_TIMEOUT`` has passed (torch's own is 30 minutes, gloo's socket waits have
     none), and with the link back the same two commands resume to a straight run's weights."""
-    straight, cut = _straight_and_cut(tmp_path)
+    cut = _copy_of(straight, tmp_path, "cut")
     wait = {"DEEP_SSFR_DIST_TIMEOUT": "15"}
     procs, logs = _start_on_two_hosts(hosts, cut, tmp_path, wait, wait)
     _wait_for_an_epoch(procs, tmp_path / "cut")
@@ -333,26 +325,35 @@ def test_nodes_cut_off_mid_training_end_within_the_timeout_and_resume_once_joine
     _resumes_to_the_straight_run(hosts, tmp_path, straight, cut)
 
 
-def _straight_and_cut(tmp_path: Path) -> tuple[str, str]:
-    """Two configs of four epochs (about a second each) on one dataset, built once: ``straight``,
-    trained here by two processes on one host, and ``cut``, for a run to break and resume."""
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory) -> Path:
+    """A config of four epochs (about a second each) with its dataset and the weights two processes
+    on one host train from it: what every multi-node training run here must give, bit for bit."""
     from tests.test_model import _tiny_train_config
 
-    def longer(name: str) -> str:
-        path = Path(_tiny_train_config(tmp_path, name))
-        body = yaml.safe_load(path.read_text())
-        body["train"].update(epochs=4, crops_per_frame=24)  # about a second an epoch: the fault lands between
-        path.write_text(yaml.safe_dump(body))
-        return str(path)
-
-    straight, cut = longer("straight"), longer("cut")
-    subprocess.run([sys.executable, "-m", "stages.cli", "dataset", "--config", straight], cwd=ROOT, check=True,
+    folder = tmp_path_factory.mktemp("straight")
+    path = Path(_tiny_train_config(folder, "straight"))
+    body = yaml.safe_load(path.read_text())
+    body["train"].update(epochs=4, crops_per_frame=24)  # about a second an epoch: the fault lands between
+    path.write_text(yaml.safe_dump(body))
+    subprocess.run([sys.executable, "-m", "stages.cli", "dataset", "--config", str(path)], cwd=ROOT, check=True,
                    env={**os.environ, **ENV}, capture_output=True)
-    shutil.copytree(tmp_path / "straight" / "data", tmp_path / "cut" / "data")
     one_host = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2", "-m", "stages.cli", "train", "--config"]
-    assert subprocess.run([*one_host, straight], cwd=ROOT, env={**os.environ, **ENV},
+    assert subprocess.run([*one_host, str(path)], cwd=ROOT, env={**os.environ, **ENV},
                           capture_output=True).returncode == 0
-    return straight, cut
+    return path
+
+
+def _copy_of(straight: Path, tmp_path: Path, name: str) -> str:
+    """The straight config and its simulation and dataset (not its training) under ``tmp_path/name``."""
+    body = yaml.safe_load(straight.read_text())
+    body["data_dir"] = str(tmp_path / name / "data")
+    (tmp_path / name).mkdir()
+    path = tmp_path / name / straight.name
+    path.write_text(yaml.safe_dump(body))
+    for stage in ("simulate", "dataset"):
+        shutil.copytree(straight.parent / "data" / stage, tmp_path / name / "data" / stage)
+    return str(path)
 
 
 def _wait_for_an_epoch(procs: list[subprocess.Popen], root: Path) -> None:
@@ -364,7 +365,7 @@ def _wait_for_an_epoch(procs: list[subprocess.Popen], root: Path) -> None:
         time.sleep(0.05)
 
 
-def _resumes_to_the_straight_run(hosts: Hosts, tmp_path: Path, straight: str, cut: str) -> None:
+def _resumes_to_the_straight_run(hosts: Hosts, tmp_path: Path, straight: Path, cut: str) -> None:
     """The broken run left an unfinished entry after a whole epoch; the same two commands again
     resume it to the straight run's weights, bit for bit."""
     import torch
@@ -374,7 +375,7 @@ def _resumes_to_the_straight_run(hosts: Hosts, tmp_path: Path, straight: str, cu
     assert 1 <= done < 4 and not (entry / "manifest.json").exists(), done
     for code, log in _train_on_two_hosts(hosts, cut, tmp_path):
         assert code == 0, log[-3000:]
-    (a,) = (tmp_path / "straight" / "data" / "train").glob("*/last.pt")
+    (a,) = (straight.parent / "data" / "train").glob("*/last.pt")
     one, resumed = torch.load(a, weights_only=True), torch.load(entry / "last.pt", weights_only=True)
     assert resumed["epoch"] == 4 and [h["epoch"] for h in resumed["history"]] == [1, 2, 3, 4]
     for k, v in one["generator"].items():
