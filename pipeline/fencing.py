@@ -112,7 +112,7 @@ def _journal(held: tuple[Path, _Open] | None, target: Path) -> None:
         return
     # A worker's journal was made when it joined (journal_into) and is only appended to: one frozen
     # after placing a file, thawed once its run finished or a new run took over (either drops the
-    # workers' journals), makes none anew in the entry (found in CI), its record refused instead.
+    # workers' journals), makes none anew in the finished entry: its record is refused instead.
     try:
         fd = os.open(folder / state.journal, os.O_WRONLY | os.O_APPEND)
     except FileNotFoundError:
@@ -287,9 +287,9 @@ def _place(tmp: Path, target: Path, held: tuple[Path, _Open] | None) -> None:
 @contextmanager
 def atomic_path(target: Path) -> Iterator[Path]:
     """Yield a temporary path; on success put it at ``target`` (:func:`_place`), else delete it.
-    Outside an open entry the temporary is a sibling; inside one it is staged outside the entry (a
-    frozen worker thawed after its run finished, found in CI, wrote its temporary into the finished
-    entry, and only then was refused). Inside an entry another process opened, the write is refused
+    Outside an open entry the temporary is a sibling; inside one it is staged outside the entry, so a
+    frozen worker thawed after its run finished leaves nothing in the finished entry. Inside an
+    entry another process opened, the write is refused
     (:class:`StaleWrite`) once that run no longer holds it, checked before the write and again
     before the file is put in place, and the target's folder is made only after the second check."""
     target = Path(target)

@@ -36,9 +36,8 @@ wp.set_module_options({"enable_backward": False})
 # vectorises (eight square roots and divisions at once) over whole vectors of 8, so no pair falls to
 # a scalar tail; a second loop then only adds the terms up and scatters them in list order. Every
 # value is the same IEEE operation on the same operands in either form, so the results are bit for
-# bit those of one scalar loop (and of the Warp loops these replace, which ran 15-30% slower per
-# pair). Moving the squares, products and cache entries into the vector loop made the step ~5%
-# faster (in-process A/B, the same state after 56 steps).
+# bit those of one scalar loop, which runs 15-30% slower per pair; the squares, products and cache
+# entries go in the vector loop too (about 5% of a step).
 GROUP = 16
 
 # The start of the vector loop over a group: a0..a2 = g and w for pair p0 + q (j3 indexes the flat
