@@ -102,11 +102,12 @@ class KernelTimer:
 
 
 # -- the project's solver ---------------------------------------------------------------------
-def project_solver(particles: int, threads: int, device: str, seed: int = 0, pair_passes: str = "auto") -> PBFSolver:
+def project_solver(particles: int, threads: int, device: str, seed: int = 0, pair_passes: str = "auto",
+                   gang: bool = True) -> PBFSolver:
     """The project's PBF solver on the benchmark's dam break (``simulate.pair_passes``: auto, scatter
-    or gather)."""
+    or gather; ``gang``: one launch per thread for a step's pair passes)."""
     params = dataclasses.replace(dam_break.params(particles, threads), pair_passes=pair_passes)
-    return PBFSolver(dam_break.scene(), params, device, seed=seed)
+    return PBFSolver(dam_break.scene(), params, device, seed=seed, gang=gang)
 
 
 def measure_project(particles: int, steps: int, threads: int, device: str, warmup: int = dam_break.WARMUP_STEPS,
@@ -114,13 +115,13 @@ def measure_project(particles: int, steps: int, threads: int, device: str, warmu
     """Step the project's solver; its measurement and, with ``profile``, ms/step per kernel."""
     init_warp((K,), device)
     before = dam_break.resident_bytes()
-    solver = project_solver(particles, threads, device, pair_passes=pair_passes)
+    # profiled pass by pass, to time each (the gang runs them in one launch per thread)
+    solver = project_solver(particles, threads, device, pair_passes=pair_passes, gang=not profile)
     for _ in range(warmup):  # compile, first sorts, the column starts to fall
         solver.step()
     wp.synchronize()
     if profile:
         solver.launch = KernelTimer(solver.launch)
-        solver.gang = False  # pass by pass, to time each (the gang runs them in one launch per thread)
     seconds, rates = dam_break.time_steps(solver.step, wp.synchronize, steps)
     memory = dam_break.resident_bytes() - before
     kernels = {}
@@ -416,8 +417,7 @@ def gang_mode(args: argparse.Namespace, threads: int) -> None:
     """The gang launch against phase-by-phase launches of the same solver, interleaved in one process."""
     init_warp((K,), "cpu")
     solvers = {"gang (one launch per thread)": project_solver(args.particles, threads, "cpu"),
-               "phase by phase (a hand-off per phase)": project_solver(args.particles, threads, "cpu")}
-    solvers["phase by phase (a hand-off per phase)"].gang = False
+               "phase by phase (a hand-off per phase)": project_solver(args.particles, threads, "cpu", gang=False)}
     for solver in solvers.values():
         for _ in range(args.warmup):
             solver.step()

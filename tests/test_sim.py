@@ -322,9 +322,8 @@ def test_neighbour_lists_are_the_pairs_within_h_with_either_scan(max_neighbours)
     params = SimulateConfig(particle_radius=0.0125, frames=1, threads=2, max_neighbours=max_neighbours)
     lists, states = [], []
     for vector in (True, False):
-        solver = PBFSolver(scene, params, "cpu", seed=1)
+        solver = PBFSolver(scene, params, "cpu", seed=1, vector_scan=vector)
         solver.step()  # a step, so the search runs on sorted, moving particles
-        solver.vector_scan = vector
         solver.predict_and_search()
         x = solver.x_pred.numpy()[:solver.n].copy()
         lists.append(_half_lists(solver))
@@ -359,8 +358,7 @@ def test_the_gang_step_adds_the_sums_of_the_phase_by_phase_step(threads, per_thr
     params = SimulateConfig(particle_radius=0.0125, frames=1, threads=threads)
     states = []
     for gang in (True, False):
-        solver = PBFSolver(scene, params, "cpu", seed=2)
-        solver.gang = gang
+        solver = PBFSolver(scene, params, "cpu", seed=2, gang=gang)
         for _ in range(3):
             solver.step()
         span = int(solver.neighbour_span.numpy()[:solver.n].max())
@@ -381,8 +379,7 @@ def test_the_native_finish_loops_give_the_general_functions_bits():
     params = SimulateConfig(particle_radius=0.0125, frames=1, threads=2)
     states = []
     for native in (True, False):
-        solver = PBFSolver(scene, params, "cpu", seed=4)
-        solver.gang = native
+        solver = PBFSolver(scene, params, "cpu", seed=4, gang=native)
         for _ in range(6):
             solver.step()
         states.append((*solver.state(), solver.particle_rho.numpy()[:solver.n].copy()))

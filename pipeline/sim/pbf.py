@@ -64,7 +64,12 @@ class PendingFrame:
 class PBFSolver:
     """Holds the particle state of one scene on one device and advances it frame by frame."""
 
-    def __init__(self, scene: SceneConfig, params: SimulateConfig, device: str, seed: int = 0):
+    def __init__(self, scene: SceneConfig, params: SimulateConfig, device: str, seed: int = 0, *,
+                 gang: bool = True, vector_scan: bool = True):
+        """``gang`` and ``vector_scan`` (CPU only) choose between equal ways of one step, for the
+        tests and benchmarks that compare them: all pair passes of a step as one gang launch (False:
+        a launch per phase, the same sums), and the AVX-512 row scan of the neighbour search where
+        the CPU has one (False: the scalar scan, the same lists)."""
         self.scene, self.params, self.device = scene, params, device
         r = params.particle_radius
         self.radius = r
@@ -93,10 +98,7 @@ class PBFSolver:
         self.gather = params.pair_passes == "gather" or (params.pair_passes == "auto" and not self.launch.cpu)
         # a particle's list slots: its half list, or (gather) its whole neighbourhood
         self.list_capacity = params.max_neighbours * (2 if self.gather else 1)
-        # the neighbour search's AVX-512 row scan where the CPU has one (False: the scalar scan)
-        self.vector_scan = True
-        # the CPU runs a step's pair passes as one gang launch (False: a launch per phase, the same sums)
-        self.gang = True
+        self.vector_scan, self.gang = vector_scan, gang
         self._allocate()
         self._upload_obstacles()
         self._append(x0, v0)
