@@ -65,11 +65,15 @@ than a fluid (or a radius far too large for its units) does not."""
 def neighbour_count(positions: np.ndarray, support: float) -> float:
     """Mean number of particles within ``support`` of a particle, estimated from cubic cells of that
     side: 4/3 pi times the mean occupancy of a particle's own cell (exact for a uniform fluid), at
-    most every particle."""
+    most every particle. Cells are counted densely where the grid is small, else by hash."""
     if len(positions) == 0:
         return 0.0
-    cells = np.floor((positions - positions.min(0)) / support).astype(np.int64)
-    keys = (cells[:, 0] * 73856093) ^ (cells[:, 1] * 19349663) ^ (cells[:, 2] * 83492791)
-    _, counts = np.unique(keys, return_counts=True)
+    cells = ((positions - positions.min(0)) * np.float32(1.0 / support)).astype(np.int64)
+    dims = cells.max(0) + 1
+    if float(np.prod(dims.astype(np.float64))) <= 8 * len(positions) + 4096:
+        counts = np.bincount((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2])
+    else:  # a few stray particles far out make the dense grid too large
+        keys = (cells[:, 0] * 73856093) ^ (cells[:, 1] * 19349663) ^ (cells[:, 2] * 83492791)
+        counts = np.unique(keys, return_counts=True)[1]
     estimate = 4.0 / 3.0 * math.pi * float((counts.astype(np.float64) ** 2).sum()) / len(positions)
     return min(estimate, float(len(positions)))

@@ -27,3 +27,14 @@ def test_a_cloud_in_one_cell_counts_every_particle_and_an_empty_frame_none():
     x = np.random.default_rng(0).uniform(0.0, 1e-3, (1000, 3))
     assert neighbour_count(x, 0.1) == 1000
     assert neighbour_count(np.zeros((0, 3)), 0.1) == 0.0
+
+
+def test_a_stray_particle_far_out_leaves_the_estimate_of_the_bulk():
+    """One particle a kilometre away: the dense grid would be huge, so the cells are hashed, and
+    the bulk's estimate barely moves."""
+    r = 0.01
+    support, step = anisotropy_support(r, 5.0), spacing(r)
+    g = np.arange(40) * step
+    x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    stray = np.vstack([x, [[1000.0, 1000.0, 1000.0]]])
+    assert abs(neighbour_count(stray, support) - neighbour_count(x, support)) < 1.0
