@@ -19,6 +19,15 @@ if not PARTICLES.exists():  # CI clones sit elsewhere; the frames also ship in t
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("DEEP_SSFR_DEVICE", "cpu")  # every test on the CPU, except those marked cuda
 
+LONGEST_FIRST = ("test_multinode.py", "test_executor.py", "test_ddp.py", "test_concurrency.py", "test_faults.py")
+"""The test files that take longest, collected first: ``make test``'s two workers take files in
+collection order, and one that starts last would finish alone."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FIRST)))  # stable: in-file order kept
+
 
 @pytest.fixture(autouse=True)
 def _cuda_marked_tests_use_the_gpu(request, monkeypatch):
