@@ -16,6 +16,22 @@ def angular_errors(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> np
     return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1.0, 1.0)))
 
 
+MISSED_DEG = 90.0
+"""The error a reference pixel scores where a method shows no fluid: a normal at right angles."""
+
+
+def errors_over_reference(pred: np.ndarray, target: np.ndarray, mask: np.ndarray, t_mask: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The evaluation's rule, one pixel set for every method: every pixel of the reference mask
+    ``t_mask`` scores, its angle where the method's ``mask`` shows fluid and ``MISSED_DEG`` where it
+    does not, so a method cannot score better by leaving hard pixels out (its extra pixels count
+    against it in IoU). Returns those errors, the angles on ``mask & t_mask`` alone (the per-mask
+    figure) and the number of missed pixels."""
+    shared = angular_errors(pred, target, mask & t_mask)
+    missed = int((t_mask & ~mask).sum())
+    return np.concatenate([shared, np.full(missed, MISSED_DEG)]), shared, missed
+
+
 def summarize_angles(errors: np.ndarray) -> dict[str, float]:
     """Mean, median and shares under 5, 10 and 20 degrees."""
     if errors.size == 0:

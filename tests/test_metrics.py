@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.masks import normal_mask
-from pipeline.metrics import angular_errors, iou, summarize_angles
+from pipeline.metrics import MISSED_DEG, angular_errors, errors_over_reference, iou, summarize_angles
 
 
 def _random_normals(seed=0, shape=(32, 40)):
@@ -42,6 +42,33 @@ def test_iou_of_half_overlap():
     a[:, :6] = True
     b[:, 4:] = True
     assert iou(a, b) == pytest.approx(20 / 100)
+
+
+def test_leaving_out_the_hard_pixels_no_longer_pays():
+    """Two methods against one target: A shows every target pixel, 1 degree off on the easy 80% and
+    40 degrees off on the hard 20%; B is exact on the easy pixels and leaves the hard ones out. On
+    each method's own mask B looks better (0 against 8.8 degrees); over the target's pixels, a missed
+    one scoring 90 degrees, A is better (8.8 against 18), and B's misses are counted."""
+    n = _random_normals(2, (20, 50))
+    target_mask = np.ones(n.shape[:2], bool)
+    hard = np.zeros_like(target_mask)
+    hard[:, :10] = True
+    axis = np.array([0.3, -0.5, 0.8])
+    perp = np.cross(n, axis)
+    perp /= np.linalg.norm(perp, axis=-1, keepdims=True)
+    a_deg = np.where(hard, 40.0, 1.0)[..., None]
+    a_map = n * np.cos(np.radians(a_deg)) + np.cross(perp, n) * np.sin(np.radians(a_deg))
+    a_err, a_on_mask, a_missed = errors_over_reference(a_map, n, target_mask, target_mask)
+    b_err, b_on_mask, b_missed = errors_over_reference(n, n, ~hard, target_mask)
+    assert b_on_mask.mean() < 1e-4 < a_on_mask.mean()
+    assert a_err.mean() == pytest.approx(0.8 * 1 + 0.2 * 40, abs=1e-4)
+    assert b_err.mean() == pytest.approx(0.2 * MISSED_DEG, abs=1e-4) and b_err.mean() > a_err.mean()
+    assert (a_missed, b_missed) == (0, hard.sum()) and a_err.size == b_err.size == target_mask.sum()
+    # pixels outside the target do not enter the errors, only the IoU
+    extra = np.ones((20, 60), bool)
+    wide = np.concatenate([n, n[:, :10]], axis=1)
+    e, _, missed = errors_over_reference(wide, wide, extra, np.pad(target_mask, ((0, 0), (0, 10))))
+    assert e.size == target_mask.sum() and missed == 0
 
 
 def test_refined_pixels_may_reach_past_the_splat_by_the_reach_only():

@@ -8,15 +8,16 @@ from pathlib import Path
 from pipeline import cache
 from pipeline.methods import NAMES
 
-HEADER = ("| method | mean (deg) | median (deg) | < 5 deg | < 10 deg | < 20 deg | IoU | PSNR (dB) | SSIM | "
-          "flicker (deg) | ms/frame |")
+HEADER = ("| method | mean (deg) | median (deg) | < 5 deg | < 10 deg | < 20 deg | missed | IoU | PSNR (dB) | "
+          "SSIM | flicker (deg) | ms/frame | mean on its mask (deg) |")
 
 
 def method_row(name: str, r: dict) -> str:
     """One row of the overall table."""
     return (f"| {name} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | {100 * r['under_5']:.1f}% "
-            f"| {100 * r['under_10']:.1f}% | {100 * r['under_20']:.1f}% | {r['iou']:.3f} | {r['psnr']:.2f} "
-            f"| {r['ssim']:.3f} | {r['flicker_deg']:.2f} | {r['ms_per_frame']:.0f} |")
+            f"| {100 * r['under_10']:.1f}% | {100 * r['under_20']:.1f}% | {100 * r['missed']:.2f}% | {r['iou']:.3f} "
+            f"| {r['psnr']:.2f} | {r['ssim']:.3f} | {r['flicker_deg']:.2f} | {r['ms_per_frame']:.0f} "
+            f"| {r['mask_mean_deg']:.2f} |")
 
 
 def ratios(table: dict, method: str = "refined") -> dict[str, float]:
@@ -39,9 +40,12 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
     first_results = by_size[sizes[0]][0]
     lines = ["# Evaluation: normal maps against the anisotropic marching-cubes mesh", "",
              f"Held-out sequences: {len(first_results)} at each of {', '.join(f'{s} x {s}' for s in sizes)} px; "
-             f"generator checkpoint `{weights}`. Errors are over pixels where both the method and the mesh show "
-             "fluid; PSNR/SSIM compare the shaded image with the shaded mesh (tone-mapped, [0, 1]); flicker is the "
-             "mean frame-to-frame change of the mean error. Overall figures weight each sequence by its pixels "
+             f"generator checkpoint `{weights}`. Errors are over every pixel where the mesh shows fluid, one pixel "
+             "set for every method: a pixel the method misses scores 90 degrees (their share: missed), an extra "
+             "one counts against its IoU; the last column is the older figure, over the pixels where both the "
+             "method and the mesh show fluid. PSNR/SSIM compare the shaded image with the shaded mesh "
+             "(tone-mapped, [0, 1]); flicker is the mean frame-to-frame change of the mean error (sequences of "
+             "more than one frame). Overall figures weight each sequence by its pixels "
              "(means, shares) or take the median of the sequences' medians.", ""]
     summary = [r for r in (ratios(by_size[s][1]) for s in sizes) if r]
     if summary:
@@ -69,9 +73,9 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
         lines.append("")
     for i, s in enumerate(sizes):
         results, table = by_size[s]
-        lines += [f"## {s} x {s}", "", HEADER, "|" + "---|" * 11]
+        lines += [f"## {s} x {s}", "", HEADER, "|" + "---|" * 13]
         lines += [method_row(NAMES.get(m, m), table[m]) for m in methods]
-        lines += [f"| mesh (reference) | 0 | 0 | | | | 1 | | | | {table['mesh']['ms_per_frame']:.0f} |", ""]
+        lines += [f"| mesh (reference) | 0 | 0 | | | | 0 | 1 | | | | {table['mesh']['ms_per_frame']:.0f} | 0 |", ""]
         if i == 0:
             lines += ["![mean error per method](methods.png)", "", "![error over frames](frames.png)", "",
                       "![examples](examples.png)", ""]
@@ -79,12 +83,13 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
         for res in results:
             lines += [f"#### {res['scene']} / {res['camera']} ({res['frames']} frames, particles "
                       f"{res.get('radius_px', 0):.1f} px)", "",
-                      "| method | mean (deg) | median (deg) | < 10 deg | IoU | PSNR | SSIM | flicker |",
-                      "|---|---|---|---|---|---|---|---|"]
+                      "| method | mean (deg) | median (deg) | < 10 deg | missed | IoU | PSNR | SSIM | flicker |",
+                      "|---|---|---|---|---|---|---|---|---|"]
             for m in methods:
                 r = res["methods"][m]
                 lines.append(f"| {NAMES.get(m, m)} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | "
-                             f"{100 * r['under_10']:.1f}% | {r['iou']:.3f} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                             f"{100 * r['under_10']:.1f}% | {100 * r['missed']:.2f}% | {r['iou']:.3f} | "
+                             f"{r['psnr']:.2f} | {r['ssim']:.3f} | "
                              f"{r['flicker_deg']:.2f} |")
             lines.append("")
     with cache.atomic_path(folder / "report.md") as tmp:

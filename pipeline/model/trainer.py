@@ -159,12 +159,13 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
                        threshold: float = 0.5) -> tuple[dict[str, Any], list[np.ndarray]]:
     """Angular error of refined and input (bilateral) normals against the mesh target.
 
-    Pixels count where both the compared map and the target show fluid (refined pixels by
-    ``masks.refined_mask``, as the renderer drops them). Returns the summary and the refined
-    maps (for the PNG sheet).
+    The evaluation's rule (``metrics.errors_over_reference``): every target pixel counts, 90 degrees
+    where the compared map shows no fluid (refined pixels by ``masks.refined_mask``, as the
+    renderer drops them), so the best checkpoint cannot win by a shrinking mask. Returns the
+    summary and the refined maps (for the PNG sheet).
     """
     from pipeline.masks import REFINED_REACH_PX, normal_mask, refined_mask
-    from pipeline.metrics import angular_errors, iou, summarize_angles
+    from pipeline.metrics import errors_over_reference, iou, summarize_angles
 
     refined_err, input_err, ious, preds = [], [], [], []
     for f in frames:
@@ -173,8 +174,8 @@ def validation_metrics(generator: Generator, frames: list, device: torch.device 
         given = np.moveaxis(f.inputs[:3], 0, -1)
         t_mask = normal_mask(target)
         r_mask = refined_mask(pred, f.fluid, threshold, REFINED_REACH_PX)
-        refined_err.append(angular_errors(pred, target, r_mask & t_mask))
-        input_err.append(angular_errors(given, target, normal_mask(given) & t_mask))
+        refined_err.append(errors_over_reference(pred, target, r_mask, t_mask)[0])
+        input_err.append(errors_over_reference(given, target, normal_mask(given), t_mask)[0])
         ious.append(iou(r_mask, t_mask))
         preds.append(pred)
     refined = summarize_angles(np.concatenate(refined_err))
