@@ -83,7 +83,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
     refiner, metaball, weights = networks(run, methods)
     entry = render_entry(run, scene.name, to_dict(scene.cameras), sim.key, weights)
     frames = select_frames(info.frames, p.frame_stride, p.max_frames)
-    if not entry.is_complete():
+    if not entry.path(cache.MANIFEST).exists():  # work to do: estimate it (begin checks the outputs)
         manifest = sim.manifest()
         check_render(run.data_dir, p.width, p.height, len(frames),
                      manifest.get("particles") or manifest.get("particles_max", 0), "render.width, render.height",

@@ -112,7 +112,7 @@ def main(opts: StageOptions, req: Request) -> None:
     cams, camera_key = sequence_cameras(req.camera, list(seq.numbers), lo - radius, hi + radius, p.width, p.height)
     refiner, metaball, weights = networks(run, {p.method, *COMPARED})
     entry = render_entry(run, name, camera_key, sim.key, weights, MODULE)
-    if not entry.is_complete():
+    if not entry.path(cache.MANIFEST).exists():  # work to do: estimate it (begin checks the outputs)
         size = "--size" if req.size or req.camera in ("auto", "orbit") else f"--size (here {req.camera}'s)"
         check_render(Path(req.out), p.width, p.height, len(seq), sim.manifest().get("particles_max", 0), size)
     if entry.begin(force=run.force):

@@ -47,7 +47,7 @@ def ensure(run: Run, scene: SceneConfig, force: bool = False) -> cache.CacheEntr
         src = scene.source
         support = anisotropy_support(src.particle_radius, run.config.dataset.aniso_kernel_radius)
         extra = import_sequence(entry.dir, scene.name, source_files(scene), src.particle_radius, src.fps, src.up,
-                                src.pattern, support)
+                                src.pattern, support=support)
     else:
         extra = simulate_sequence(entry.dir, scene, run.config.simulate, warp_device(run.device), run.config.seed)
     entry.finish(extra.pop("files"), extra.pop("timings"), **extra)

@@ -35,7 +35,7 @@ def source_files(scene: SceneConfig) -> list[Path]:
 
 
 def import_sequence(folder: Path, name: str, files: list[Path], radius: float, fps: float, up: str = "y",
-                    source: str = "", support: float = 0.0) -> dict:
+                    source: str = "", *, support: float) -> dict:
     """Copy particle files (in this order) into the folder as frames 1, 2, ...; returns the
     manifest's extra fields. ``up="z"`` turns Z-up data to the pipeline's Y-up. ``support``: the
     anisotropy's neighbour radius; a frame whose neighbour search would not finish is refused."""
@@ -47,8 +47,7 @@ def import_sequence(folder: Path, name: str, files: list[Path], radius: float, f
             continue
         with timings("read"):
             frame = read_particles(f, up=up)
-        if support > 0:
-            check_crowding(f, frame.positions, radius, support)
+        check_crowding(f, frame.positions, radius, support)
         save_frame(target, frame.positions, frame.velocities)
         n_max = max(n_max, len(frame.positions))
     first = read_particles(files[0], up=up).positions
