@@ -421,8 +421,9 @@ def _user_sequence(folder, frames: int) -> str:
 @pytest.mark.slow
 @pytest.mark.parametrize("sig, code, word", [("SIGINT", 130, "interrupted"), ("SIGTERM", 143, "terminated")])
 def test_a_signal_ends_a_render_within_two_seconds_and_the_same_command_resumes(tmp_path, sig, code, word):
-    """Ctrl-C or SIGTERM right after the first frame's EXR: the render ends within 2 s with one line
-    (exit 130 / 143), keeps that frame, and the same command then renders only the rest."""
+    """Ctrl-C or SIGTERM right after the first frame's last file (its preview, written after the EXR):
+    the render ends within 2 s with one line (exit 130 / 143), keeps that frame, and the same command
+    then renders only the rest."""
     import signal
     import sys
     import time
@@ -438,7 +439,7 @@ def test_a_signal_ends_a_render_within_two_seconds_and_the_same_command_resumes(
         sent["at"] = time.perf_counter()
         proc.send_signal(getattr(signal, sig))
 
-    proc = on_writes(cmd, "*/frames/frame_0001.exr", 1, stop)
+    proc = on_writes(cmd, "*/preview/frame_0001.png", 1, stop)
     waited = time.perf_counter() - sent["at"]
     assert proc.returncode == code and waited < 2.0, (proc.returncode, waited)
     assert [line for line in proc.log if line.startswith("render:")] == \
