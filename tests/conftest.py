@@ -68,7 +68,10 @@ def on_writes(cmd: list[str], pattern: str, count: int, then, env: dict | None =
     process, with ``proc.seen`` the number of matching files it had finished and ``proc.log`` its
     stderr lines."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {}), "DEEP_SSFR_LOG": "DEBUG"}
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # Ctrl-C reaches the stage even when the suite runs as a background job, whose children inherit
+    # an ignored SIGINT (and Python then never installs its KeyboardInterrupt handler)
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     proc.seen, proc.log, called = 0, [], False
     if count == 0:
         then(proc)
