@@ -357,6 +357,9 @@ class TrainConfig:
     its neighbourhood) and adds the projected radius in pixels, so a fluid seen from further away or
     at another resolution gives the same inputs; 'frame' normalises raw and filtered depth by the
     frame's mean and spread (the weights shipped before 2026-12)."""
+    layers: bool = True
+    """With ``input: spheres``: the channels of what lies behind the front splat (``behind``,
+    ``thickness``); False zeroes them (the ablation of the depth separation)."""
     working_radius_px: float = Field(3.0, ge=0.0)
     """Frames whose median projected particle radius is larger than this are scaled down to it
     before the generator (inputs area-averaged) and its output scaled back up, so the network always
@@ -539,8 +542,25 @@ class MetaballConfig:
     """Outline width in the circle input, a share of the circle's diameter (the thesis' 0.05)."""
     outline_min_px: float = Field(1.0, ge=0.0)
     """Narrowest outline (px), so that small circles still show."""
+    input: Literal["spheres", "circles"] = "spheres"
+    """What the generator sees: the balls as exactly splatted spheres with the layer behind them
+    (``sphere_input``) or the thesis' circle outlines with a centre-depth code (``circle_input``)."""
+    layers: bool = True
+    """With ``input: spheres``: the channels of what lies behind the front splat (``behind``,
+    ``thickness``); False zeroes them (the ablation of the depth separation)."""
+    working_radius_px: float = Field(3.0, ge=0.0)
+    """Views are drawn at the image scale where the median ball's projected radius is within half an
+    octave below this (px), and the maps resampled back (0: the view's own size, the thesis')."""
+    architecture: Literal["resnet", "unet"] = "resnet"
+    """Generator: the refiner's ResNet (two halvings, residual blocks; any side a multiple of 4) or the
+    thesis' eight-level U-Net (sides multiples of 256)."""
+    res_blocks: int = Field(4, ge=0)
+    """Residual blocks of the ResNet generator."""
+    crop: int = Field(128, ge=0, multiple_of=4)
+    """Training crop side (px, random, where the target shows surface; the U-Net needs multiples of
+    256); 0: whole views, which must then all have one size."""
     size: int = Field(256, ge=256, multiple_of=256)
-    """Square side (px) of the training views (the U-Net takes multiples of 256)."""
+    """Square side (px) of the training views' cameras (before the working scale)."""
     frame_stride: int = Field(4, ge=1)
     """Every n-th simulated frame of a training scene gives views."""
     max_frames: int = Field(0, ge=0)
@@ -558,7 +578,7 @@ class MetaballConfig:
     seed: int = 0
     """Seed of the random cameras and ball sets."""
     base_channels: int = Field(16, ge=4)
-    """U-Net width (16: 3.4 M parameters, 13.6 MB; the thesis' 32 is over the 20 MB limit)."""
+    """Generator width (U-Net 16: 3.4 M parameters, 13.6 MB; the thesis' 32 is over the 20 MB limit)."""
     upsample: Literal["transpose", "resize"] = "transpose"
     """Decoder up-sampling: the thesis' transposed convolutions or resize and convolve."""
     disc_base_channels: int = Field(32, ge=4)

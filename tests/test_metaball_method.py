@@ -22,7 +22,7 @@ from pipeline.parallel import Launcher
 from stages import cli
 from tests.conftest import ROOT
 
-SMALL = MetaballConfig(base_channels=4, disc_base_channels=4, batch_size=2, epochs=2, step=0.01)
+SMALL = MetaballConfig(base_channels=4, disc_base_channels=4, batch_size=2, epochs=2, step=0.01, crop=32)
 
 
 @pytest.fixture(scope="module")
@@ -39,16 +39,17 @@ def _balls(n: int = 12, seed: int = 3) -> tuple[np.ndarray, float]:
 
 def test_the_working_frame_does_not_depend_on_the_scene_scale(launch):
     """The same balls three times larger and three times further away (the world scaled about the
-    eye) give the same circles, codes and normals; the depth comes back in the scene's units."""
+    eye) give the same inputs, codes and normals; the depth comes back in the scene's units."""
     x, r = _balls()
     eye = np.array([0.05, 0.04, -0.72])
-    cam = Camera(look_at(eye, (0.0, 0.0, -1.0)), 40.0, 64, 64)
+    cam = Camera(look_at(eye, (0.0, 0.0, -1.0)), 40.0, 128, 128)
     a = fluid_view(x, r, cam, SMALL)
     b = fluid_view(eye + 3.0 * (x - eye), 3.0 * r, cam, SMALL)
     np.testing.assert_allclose(a.positions, b.positions, atol=1e-9)
     np.testing.assert_allclose(a.circles(launch), b.circles(launch), atol=1e-6)
+    np.testing.assert_allclose(a.inputs("spheres", launch), b.inputs("spheres", launch), atol=1e-5)
     ta, tb = a.targets(launch), b.targets(launch)
-    assert ta["mask"].sum() > 200 and (ta["mask"] == tb["mask"]).mean() > 0.999
+    assert ta["mask"].sum() > 100 and (ta["mask"] == tb["mask"]).mean() > 0.999
     both = (ta["mask"] > 0) & (tb["mask"] > 0)
     np.testing.assert_allclose(ta["normals"][both], tb["normals"][both], atol=1e-3)
     np.testing.assert_allclose(3.0 * ta["depth"][both], tb["depth"][both], rtol=1e-4)
@@ -57,6 +58,47 @@ def test_the_working_frame_does_not_depend_on_the_scene_scale(launch):
     assert nearest - 3 * r < ta["depth"][both].min() < nearest
     codes = a.depth_code(ta["depth"][both])
     np.testing.assert_allclose(a.depth_of(codes), ta["depth"][both], rtol=1e-5)
+
+
+def test_the_working_scale_draws_every_resolution_at_one_ball_size(launch):
+    """The same view at 128, 256 and 512 px reaches the network as one image: the median ball at most
+    ``working_radius_px`` and more than half an octave below it, the inputs equal; a view of balls under
+    that size is drawn larger, at most 4 times."""
+    x, r = _balls(40)
+    eye = np.array([0.05, 0.04, -0.72])
+    views = [fluid_view(x, r, Camera(look_at(eye, (0.0, 0.0, -1.0)), 40.0, n, n), SMALL) for n in (128, 256, 512)]
+    assert [v.size for v in views] == [(128, 128), (256, 256), (512, 512)]
+    sizes = {(v.camera.height, v.camera.width) for v in views}
+    assert len(sizes) == 1
+    c = views[0].camera
+    r_px = np.median(c.focal_px * views[0].radii / -views[0].positions[:, 2])
+    assert SMALL.working_radius_px / 2**0.5 < r_px <= SMALL.working_radius_px
+    first = views[0].inputs("spheres", launch)
+    for v in views[1:]:
+        np.testing.assert_allclose(v.inputs("spheres", launch), first, atol=1e-5)
+    far = fluid_view(x, r, Camera(look_at(eye - np.array([0.0, 0.0, 30.0]), (0.0, 0.0, -1.0)), 40.0, 64, 64), SMALL)
+    assert far.camera.height == 4 * 64
+
+
+def test_the_sphere_input_shows_the_ball_behind_and_how_far(launch):
+    """One ball 3 radii behind another on the axis: the front sphere's disc is covered, with the relief
+    of a sphere (its centre nearer than its rim); at the centre pixel the back ball is entered 3 radii
+    after the front one (behind = 1 - 3/8) and the ray leaves it 5 radii after (thickness 5/8); a
+    lone ball shows nothing behind and a thickness of its diameter."""
+    from pipeline.metaball import sphere_input
+    from pipeline.metaball.views import params_of
+
+    cam = Camera(np.eye(4), 30.0, 65, 65)
+    p = SMALL
+    r = 0.05
+    two = sphere_input(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0 - 3 * r]]), r, cam, params_of(p), launch)
+    one = sphere_input(np.array([[0.0, 0.0, -1.0]]), r, cam, params_of(p), launch)
+    c = 32
+    disc = cam.focal_px * r / 1.0
+    assert one[0, c, c] == 1 and one[0, c, c + int(disc) + 2] == 0 and one[0, c, c + int(disc) - 1] == 1
+    assert one[1, c, c] < one[1, c, c + int(disc) - 1], "the sphere's centre is nearer than its rim"
+    assert one[2, c, c] == 0 and two[2, c, c] == pytest.approx(1 - 3 / 8, abs=2e-3)
+    assert one[3, c, c] == pytest.approx(2 / 8, abs=2e-3) and two[3, c, c] == pytest.approx(5 / 8, abs=2e-3)
 
 
 @pytest.mark.parametrize("turns,mirror", [(1, False), (2, False), (0, True), (3, True)])
@@ -72,7 +114,8 @@ def test_augmentation_equals_rendering_the_turned_balls(launch, turns, mirror):
         view = working_view(p, radii, cam, m)
         t = view.targets(launch, colours)
         t["depth"] = t["depth"] * view.scale
-        return view.circles(launch, colours), encode_targets(t, view.params)
+        return np.concatenate([view.circles(launch, colours), view.inputs("spheres", launch)]), \
+            encode_targets(t, view.params)
 
     x, y = render(positions)
     turned = positions.copy()
@@ -82,7 +125,7 @@ def test_augmentation_equals_rendering_the_turned_balls(launch, turns, mirror):
         turned[:, 0] = -turned[:, 0]
     want_x, want_y = render(turned)
     got_x, got_y = augment(x, y, turns, mirror)
-    np.testing.assert_allclose(got_x, want_x, atol=1e-6)
+    np.testing.assert_allclose(got_x, want_x, atol=1e-5)
     surface = (want_y[4:7].max(0) > 0) & (got_y[4:7].max(0) > 0)
     assert surface.mean() > 0.05 and (surface == (want_y[4:7].max(0) > 0)).mean() > 0.995
     np.testing.assert_allclose(got_y[4:7][:, surface], want_y[4:7][:, surface], atol=2e-3)
@@ -90,7 +133,7 @@ def test_augmentation_equals_rendering_the_turned_balls(launch, turns, mirror):
 
 @pytest.fixture(scope="module")
 def views(tmp_path_factory, launch):
-    """Four random-set views at 256 x 256 (the U-Net's smallest side)."""
+    """Four random-set views (a 256 x 256 camera drawn at the working scale)."""
     folder = tmp_path_factory.mktemp("metaball_views")
     cam = paper_camera(256, 256)
     paths = []
@@ -98,7 +141,7 @@ def views(tmp_path_factory, launch):
         positions, radii, colours = random_ball_set(np.random.default_rng([9, k]), 12)
         path = folder / f"set_{k}.exr"
         share = write_view(path, working_view(positions, radii, cam, SMALL), cam, launch, float(np.median(radii)),
-                           colours)
+                           SMALL.input, colours)
         assert 0 < share < 1
         paths.append(path)
     return paths
@@ -120,7 +163,7 @@ def test_training_resumes_as_a_straight_run_would_and_the_generator_predicts(tmp
     history = [json.loads(line) for line in (straight / "metrics.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2] and 0 <= history[-1]["val"]["iou"] <= 1
     assert (straight / "loss_curve.png").exists()
-    # the generator as the metaball method: any image size (padded to 256 and cropped back)
+    # the generator as the metaball method: any image size (drawn at the working scale, resampled back)
     net = MetaballNet(straight / "best.pt")
     assert net.config == SMALL
     x, r = _balls()
@@ -134,10 +177,11 @@ def test_training_resumes_as_a_straight_run_would_and_the_generator_predicts(tmp
 
 def test_training_pair_encodes_what_was_rendered(views):
     x, y = training_pair(views[0], SMALL)
-    assert x.shape == (4, 256, 256) and y.shape == (7, 256, 256)
+    assert x.shape[0] == 4 and y.shape[0] == 7 and x.shape[1:] == y.shape[1:] and x.shape[1] < 256
     surface = y[4:7].max(0) > 0
     assert ((y[3] < 1) == surface).all(), "depth code 1 exactly where the ray met nothing"
-    assert 0 <= y.min() and y.max() <= 1 and x[3].max() <= 1
+    assert 0 <= y.min() and y.max() <= 1 and 0 <= x.min() - -1 and x.max() <= 1
+    assert (x[0] > 0).sum() <= surface.sum(), "the spheres lie inside the blended surface"
 
 
 def test_metaball_is_a_method_and_bad_method_names_are_config_errors(tmp_path):
@@ -167,7 +211,8 @@ def test_metaball_stages_build_train_and_ship(tmp_path):
     body["dataset"] = {"holdout_scenes": ["merging"], "random_radius_px": [2, 4]}
     body["train"] = {"validation_scenes": ["merging"]}
     body["metaball"] = {"base_channels": 4, "disc_base_channels": 4, "batch_size": 2, "epochs": 1, "step": 0.02,
-                        "frame_stride": 2, "views_per_frame": 1, "random_sets": 1, "repeats": 2, "max_balls": 8}
+                        "frame_stride": 2, "views_per_frame": 1, "random_sets": 1, "repeats": 2, "max_balls": 8,
+                        "crop": 32}
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(body))
     assert cli.main(["metaball-dataset", "--config", str(config)]) == 0

@@ -22,7 +22,7 @@ from pipeline.metaball import kernels as K
 from pipeline.parallel import Launcher
 from pipeline.screen import row_bands
 from pipeline.surface import hash_grid
-from pipeline.vectors import length
+from pipeline.vectors import box_mean, length
 
 _EMPTY = 1.0e30
 _NO_OWNER = 2**31 - 1
@@ -35,7 +35,18 @@ TARGET_CHANNELS = ("R", "G", "B", "Z", "N.X", "N.Y", "N.Z")
 """The 7 channels of ``encode_targets`` and of the generator's output, in order."""
 
 INPUT_CHANNELS = ("R", "G", "B", "Z")
-"""The 4 channels of ``circle_input`` and of the generator's input, in order."""
+"""The 4 channels of ``circle_input`` (the thesis' generator input), in order."""
+
+SPHERE_CHANNELS = ("A", "relief", "behind", "thickness")
+"""The 4 channels of ``sphere_input`` (the default generator input), in order."""
+
+RELIEF_WINDOW_RADII = 6.0
+"""Half width (projected ball radii) of the window the relief compares the front depth with."""
+RELIEF_SCALE_RADII = 4.0
+"""Relief of this many ball radii maps to tanh(1)."""
+LAYER_SPAN_RADII = 8.0
+"""Gaps and thicknesses are coded over this many ball radii (twice the field's cut-off): beyond it
+a ball behind cannot shape the front surface."""
 
 
 @dataclass(frozen=True)
@@ -205,6 +216,51 @@ def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
     return image.numpy().reshape(4, h, w)
 
 
+def sphere_input(positions: np.ndarray, radii, camera: Camera, params: MetaballParams,
+                 launch: Launcher) -> np.ndarray:
+    """The default network input for one view (4 x H x W float32, ``SPHERE_CHANNELS``): each ball as
+    the sphere of its minimal radius, splatted exactly (ray-sphere), and what lies behind it.
+
+    0. ``A``: 1 where a sphere covers the pixel;
+    1. ``relief``: tanh of the front depth minus its mean over a window of +-6 projected radii, in
+       units of 4 ball radii: the balls' own shape and which parts stand in front of their
+       neighbourhood, scale-free (absolute depth never enters);
+    2. ``behind``: 1 - gap / 8 radii, the gap from the front entry to the nearest sphere entered more
+       than one radius behind it (0 where none is within 8 radii): a second layer that still shapes
+       the surface, and where it stops doing so (the thesis' named failure: balls at different
+       depths blended);
+    3. ``thickness``: how far the ray runs from the first entry to the last exit, over 8 radii.
+    Lengths are in units of the median ball's minimal radius; 0 outside the spheres."""
+    p = params
+    device = launch.device
+    w, h = camera.width, camera.height
+    pos, rad, _ = _balls(positions, radii, None, p)
+    view = camera.to_view(pos)
+    r_min = minimal_radius(rad, p.iso_level)
+    keep = -view[:, 2] > r_min  # spheres wholly in front of the camera
+    view, r_min = view[keep], r_min[keep]
+    if len(view) == 0:
+        return np.zeros((4, h, w), np.float32)
+    r = float(np.median(r_min))
+    t_in, t_out = _support_span(view, r_min, camera, p, launch)
+    t_behind = wp.full(w * h, _EMPTY, dtype=float, device=device)
+    args = [wp.array(view.astype(np.float32), dtype=wp.vec3, device=device),
+            wp.array(r_min.astype(np.float32), dtype=float, device=device), camera.focal_px, w, h]
+    launch.tasks(K.splat_behind, len(view), [[*args, r0, r1, r, t_in, t_behind] for r0, r1 in row_bands(launch, h)])
+    front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
+    covered = front < 0.5 * _EMPTY
+    m = covered.astype(np.float32)
+    d = np.where(covered, front, 0.0).astype(np.float32)
+    r_px = float(np.median(camera.focal_px * r_min / -view[:, 2]))
+    size = 2 * max(1, round(RELIEF_WINDOW_RADII * r_px)) + 1
+    local = box_mean(d, size) / np.maximum(box_mean(m, size), 1e-6)
+    span = LAYER_SPAN_RADII * r
+    channels = [m, np.tanh((d - local) / (RELIEF_SCALE_RADII * r)),
+                np.where(behind < 0.5 * _EMPTY, np.clip(1.0 - (behind - front) / span, 0.0, 1.0), 0.0),
+                np.clip((back - front) / span, 0.0, 1.0)]
+    return np.where(covered, np.stack(channels), 0.0).astype(np.float32)
+
+
 def encode_targets(targets: dict[str, np.ndarray], params: MetaballParams) -> np.ndarray:
     """The thesis' 7 x H x W target buffers in [0, 1] (``TARGET_CHANNELS``): colour, the depth code
     (d - near) / (far - near) (1 where empty, as its shader's miss depth clamps to white) and the
@@ -236,11 +292,17 @@ def decode_gbuffers(encoded: np.ndarray, params: MetaballParams, min_encoded_nor
             "normals": np.where(mask[..., None], n, 0.0).astype(np.float32), "mask": mask.astype(np.float32)}
 
 
-def view_channels(targets: dict[str, np.ndarray], circles: np.ndarray) -> dict[str, np.ndarray]:
-    """EXR channels of one view (for ``pipeline.exr.write_exr``): the circle input as ``circles.R``,
-    ``.G``, ``.B``, ``.Z`` (the depth code) and the targets as ``metaball.R``, ``.G``, ``.B``,
-    ``metaball.Z`` (view depth), ``metaball.N.X``, ``.Y``, ``.Z`` and ``metaball.A`` (mask)."""
-    out = {f"circles.{c}": circles[k] for k, c in enumerate(INPUT_CHANNELS)}
+def input_names(kind: str) -> list[str]:
+    """EXR channel names of a network input kind ('circles' or 'spheres')."""
+    return [f"{kind}.{c}" for c in (INPUT_CHANNELS if kind == "circles" else SPHERE_CHANNELS)]
+
+
+def view_channels(targets: dict[str, np.ndarray], inputs: np.ndarray, kind: str = "circles") -> dict[str, np.ndarray]:
+    """EXR channels of one view (for ``pipeline.exr.write_exr``): the input as ``input_names(kind)``
+    (``circles.R``, ``.G``, ``.B``, ``.Z``, or ``spheres.A``, ``.relief``, ``.behind``, ``.thickness``)
+    and the targets as ``metaball.R``, ``.G``, ``.B``, ``metaball.Z`` (view depth), ``metaball.N.X``,
+    ``.Y``, ``.Z`` and ``metaball.A`` (mask)."""
+    out = dict(zip(input_names(kind), inputs, strict=True))
     out.update({f"metaball.{c}": targets["colour"][..., k] for k, c in enumerate("RGB")})
     out["metaball.Z"] = targets["depth"]
     out.update({f"metaball.N.{c}": targets["normals"][..., k] for k, c in enumerate("XYZ")})

@@ -1,8 +1,10 @@
-"""The metaball dataset: circle inputs and ray-marched G-buffers, one EXR per view.
+"""The metaball dataset: network inputs and ray-marched G-buffers, one EXR per view.
 
 Fluid views: each chosen frame of a scene seen from ``metaball.views_per_frame`` random cameras
-(``pipeline.camera.random_view`` with the dataset's ranges at ``metaball.size``), its particles as
-metaballs in the working frame (``pipeline.metaball.views``). Random sets: the thesis' random balls,
+(``pipeline.camera.random_view`` at ``metaball.size``, the dataset's field of view and elevation
+ranges, particles within half an octave of ``metaball.working_radius_px`` on screen, or the dataset's
+range without a working radius), its particles as metaballs in the working frame
+(``pipeline.metaball.views``), drawn at the working scale. Random sets: the thesis' random balls,
 each rendered ``metaball.repeats`` times with small offsets. Every EXR holds ``view_channels`` (the
 target depth in scene units) and, in its header, the camera, ``metaballScale`` and the depth code's
 ``metaballNear`` / ``metaballFar`` (working units), from which ``training_pair`` encodes the target.
@@ -23,9 +25,17 @@ from tqdm import tqdm
 from pipeline.camera import Camera, random_view
 from pipeline.config import DatasetConfig, MetaballConfig
 from pipeline.exr import camera_attributes, read_exr, read_exr_header, write_exr
-from pipeline.metaball import INPUT_CHANNELS, MetaballParams, encode_targets, paper_camera, view_channels
+from pipeline.metaball import MetaballParams, encode_targets, input_names, paper_camera, view_channels
 from pipeline.metaball import kernels as metaball_kernels
-from pipeline.metaball.views import WorkingView, fluid_view, jittered, params_of, random_ball_set, working_view
+from pipeline.metaball.views import (
+    WorkingView,
+    fluid_view,
+    jittered,
+    network_input,
+    params_of,
+    random_ball_set,
+    working_view,
+)
 from pipeline.parallel import Launcher, init_warp
 
 
@@ -42,21 +52,24 @@ def set_view_name(index: int, repeat: int) -> str:
 def fluid_cameras(scene: str, frame: int, x: np.ndarray, radius: float, m: MetaballConfig,
                   d: DatasetConfig) -> list[Camera]:
     """The random cameras of one frame (seeded by ``metaball.seed``, the scene, frame and view)."""
+    w = m.working_radius_px
+    radius_px = (w / 2.0**0.5, w * 2.0**0.5) if w else d.random_radius_px
     return [random_view(x, radius, np.random.default_rng([m.seed, zlib.crc32(scene.encode()), frame, k]),
-                        d.random_radius_px, (m.size, m.size), d.random_fov_deg, d.random_elevation_deg)
+                        radius_px, (m.size, m.size), d.random_fov_deg, d.random_elevation_deg)
             for k in range(m.views_per_frame)]
 
 
-def write_view(path: Path, view: WorkingView, world_camera: Camera, launch: Launcher, radius: float,
+def write_view(path: Path, view: WorkingView, world_camera: Camera, launch: Launcher, radius: float, kind: str,
                colours: np.ndarray | None = None) -> float:
-    """Render one view's input and targets into ``path`` (atomically); returns its surface share."""
+    """Render one view's input of ``kind`` and its targets into ``path`` (atomically), at the working
+    scale; returns its surface share."""
     targets = view.targets(launch, colours)
-    circles = view.circles(launch, colours)
+    inputs = view.inputs(kind, launch, colours)
     p = view.params
     attributes = {**camera_attributes(world_camera), "particleRadius": float(radius),
                   "metaballScale": float(view.scale), "metaballNear": float(p.depth_near),
                   "metaballFar": float(p.depth_far)}
-    write_exr(path, view_channels(targets, circles), attributes=attributes)
+    write_exr(path, view_channels(targets, inputs, kind), attributes=attributes)
     return float(targets["mask"].mean())
 
 
@@ -92,7 +105,7 @@ def build_fluid_views(folder: Path, scene: str, frames: list[int], load: Callabl
             records.append({"file": path.name, "frame": frame, "view": k})
             if not path.exists():
                 jobs.append(lambda launch, x=x, cam=cam, path=path: write_view(
-                    path, fluid_view(x, radius, cam, m), cam, launch, radius))
+                    path, fluid_view(x, radius, cam, m), cam, launch, radius, m.input))
     _pool(workers, device, jobs, f"metaball {scene}")
     return records
 
@@ -110,7 +123,8 @@ def build_random_sets(folder: Path, m: MetaballConfig, device: str, workers: int
             records.append({"file": path.name, "set": index, "repeat": r})
             if not path.exists():
                 jobs.append(lambda launch, moved=moved, radii=radii, colours=colours, path=path: write_view(
-                    path, working_view(moved, radii, cam, m), cam, launch, float(np.median(radii)), colours))
+                    path, working_view(moved, radii, cam, m), cam, launch, float(np.median(radii)), m.input,
+                    colours))
     _pool(workers, device, jobs, "metaball random sets")
     return records
 
@@ -121,10 +135,11 @@ def view_params(header: dict, m: MetaballConfig) -> MetaballParams:
 
 
 def training_pair(path: Path, m: MetaballConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(4 x H x W circle input, 7 x H x W encoded target), both in [0, 1], of one dataset view."""
+    """(4 x H x W input of ``metaball.input``, 7 x H x W encoded target), both in [0, 1], of one
+    dataset view."""
     ch = read_exr(path)
     header = read_exr_header(path)
-    circles = np.stack([ch[f"circles.{c}"] for c in INPUT_CHANNELS])
+    circles = network_input(np.stack([ch[name] for name in input_names(m.input)]), m)
     targets = {"colour": np.stack([ch[f"metaball.{c}"] for c in "RGB"], -1),
                "depth": ch["metaball.Z"] * float(header["metaballScale"]),
                "normals": np.stack([ch[f"metaball.N.{c}"] for c in "XYZ"], -1), "mask": ch["metaball.A"]}

@@ -165,6 +165,36 @@ def splat_supports(
 
 
 @wp.kernel
+def splat_behind(
+    offset: int,
+    centres_view: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    focal: float,
+    width: int,
+    height: int,
+    row0: int,
+    row1: int,
+    gap: float,
+    t_front: wp.array(dtype=float),
+    t_behind: wp.array(dtype=float),
+):
+    """The second depth layer of a sphere splat: per pixel the nearest entry into a sphere that lies
+    more than ``gap`` behind the first entry ``t_front`` (a ball behind the front one, not the
+    front one's neighbour in the same layer), rows [row0, row1)."""
+    i = wp.tid() + offset
+    c = centres_view[i]
+    rad = radii[i]
+    box = splat_bounds(c, rad, focal, width, height, row0, row1)
+    cc = wp.dot(c, c) - rad * rad
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, cc)
+            idx = py * width + px
+            if hit[2] >= 0.0 and hit[0] > t_front[idx] + gap:
+                wp.atomic_min(t_behind, idx, hit[0])
+
+
+@wp.kernel
 def march_metaballs(
     offset: int,
     grid: wp.uint64,

@@ -1,12 +1,14 @@
-"""Training of the metaball pix2pix pair (Horvath 2019, section 5.3): epochs over the cached views,
-validation, checkpoints that resume.
+"""Training of the metaball generator (Horvath 2019, section 5.3): epochs over the cached views,
+validation, checkpoints that resume. With ``gan_weight`` > 0 a PatchGAN discriminator trains beside
+it (the thesis' pix2pix pair); with 0 the generator learns the L1 loss alone, which its per-pixel
+targets (a deterministic function of the balls) need no adversary for.
 
 Writes into one folder: ``last.pt`` (both networks, both Adam states, epoch, history; atomic),
 ``best.pt`` (the generator with its arguments and the config, chosen on the validation views'
 normal error with silhouette misses counted as 90 degrees), ``metrics.jsonl`` and ``loss_curve.png``.
-Views are held in memory as float16 and turned by random quarter turns and mirrored, the encoded
-normals turned alike. Each epoch draws from its own seeds, so a resumed run makes the draws a
-straight one would.
+Views are held in memory as float16, cut to random ``crop`` squares that show surface, and turned
+by random quarter turns and mirrored, the encoded normals turned alike. Each epoch draws from its
+own seeds, so a resumed run makes the draws a straight one would.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from pipeline.metaball.networks import (
 from pipeline.metaball.views import params_of
 from pipeline.metrics import angular_errors, iou, summarize_angles
 from pipeline.model.data import rotate_quarter
+from pipeline.model.networks import Generator
 from pipeline.model.train import TimeLimitReached, TrainingError
 from pipeline.plots import metaball_curves
 
@@ -48,8 +51,46 @@ VAL_VIEWS = 24
 
 
 def generator_args(m: MetaballConfig) -> dict:
-    """The ``UNetGenerator`` arguments of a config (stored in every checkpoint)."""
-    return {"in_channels": 4, "out_channels": 7, "base_channels": m.base_channels, "upsample": m.upsample}
+    """The generator's arguments of a config (stored in every checkpoint; ``kind`` picks the class)."""
+    if m.architecture == "unet":
+        return {"in_channels": 4, "out_channels": 7, "base_channels": m.base_channels, "upsample": m.upsample}
+    return {"kind": "resnet", "in_channels": 4, "out_channels": 7, "base_channels": m.base_channels,
+            "downsamples": 2, "res_blocks": m.res_blocks}
+
+
+def build_generator(args: dict) -> torch.nn.Module:
+    """A generator from its checkpoint arguments: the refiner's ResNet or the thesis' U-Net (checkpoints
+    from before the choice hold no ``kind``)."""
+    args = dict(args)
+    if args.pop("kind", "unet") == "resnet":
+        return Generator(**args)
+    return UNetGenerator(**args)
+
+
+def side_multiple(generator: torch.nn.Module) -> int:
+    """What the generator's input sides must be multiples of (the U-Net's eight halvings: 256)."""
+    return getattr(generator, "stride", 256)
+
+
+def random_crop(x: np.ndarray, y: np.ndarray, crop: int, rng: np.random.Generator,
+                tries: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """A ``crop`` square of a view (input C x H x W, encoded target 7 x H x W), padded with empty pixels
+    where the view is smaller, placed at random until it shows surface in a tenth of its pixels (at
+    most ``tries`` draws)."""
+    h, w = x.shape[1:]
+    if h < crop or w < crop:
+        ph, pw = max(crop - h, 0), max(crop - w, 0)
+        x = np.pad(x, ((0, 0), (0, ph), (0, pw)))
+        y = np.concatenate([np.pad(y[:3], ((0, 0), (0, ph), (0, pw))),
+                            np.pad(y[3:4], ((0, 0), (0, ph), (0, pw)), constant_values=1.0),
+                            np.pad(y[4:], ((0, 0), (0, ph), (0, pw)))])
+        h, w = x.shape[1:]
+    for _ in range(tries):
+        r, c = int(rng.integers(h - crop + 1)), int(rng.integers(w - crop + 1))
+        yc = y[:, r:r + crop, c:c + crop]
+        if (yc[4:7].max(axis=0) > 0).mean() >= 0.1:
+            break
+    return x[:, r:r + crop, c:c + crop], yc
 
 
 def augment(x: np.ndarray, y: np.ndarray, turns: int, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -73,52 +114,67 @@ class Pix2Pix:
     def __init__(self, m: MetaballConfig, device: str, seed: int):
         torch.manual_seed(seed)
         self.m, self.device = m, torch.device(device)
-        self.generator = UNetGenerator(**generator_args(m)).to(self.device)
-        self.discriminator = PatchDiscriminator(11, m.disc_base_channels, m.disc_kernel).to(self.device)
-        init_weights(self.generator)
-        init_weights(self.discriminator)
+        self.generator = build_generator(generator_args(m)).to(self.device)
+        if m.architecture == "unet":
+            init_weights(self.generator)
         betas = (m.beta1, 0.999)
         self.opt_g = torch.optim.Adam(self.generator.parameters(), m.learning_rate, betas=betas)
-        self.opt_d = torch.optim.Adam(self.discriminator.parameters(), m.learning_rate, betas=betas)
+        self.discriminator = self.opt_d = None
+        if m.gan_weight > 0:
+            self.discriminator = PatchDiscriminator(11, m.disc_base_channels, m.disc_kernel).to(self.device)
+            init_weights(self.discriminator)
+            self.opt_d = torch.optim.Adam(self.discriminator.parameters(), m.learning_rate, betas=betas)
 
     def train_step(self, x: torch.Tensor, y: torch.Tensor) -> dict[str, float]:
         """One step of both networks on a batch in [-1, 1] (the thesis' ``preprocess``)."""
         self.generator.train()
-        self.discriminator.train()
         fake = self.generator(x)
-        self.opt_d.zero_grad(set_to_none=True)
-        loss_d = discriminator_loss(self.discriminator(x, y), self.discriminator(x, fake.detach()))
-        loss_d.backward()
-        self.opt_d.step()
+        if self.discriminator is None:
+            l1 = (y - fake).abs().mean()
+            total, gan, loss_d = self.m.l1_weight * l1, torch.zeros(()), torch.zeros(())
+        else:
+            self.discriminator.train()
+            self.opt_d.zero_grad(set_to_none=True)
+            loss_d = discriminator_loss(self.discriminator(x, y), self.discriminator(x, fake.detach()))
+            loss_d.backward()
+            self.opt_d.step()
+            total, gan, l1 = generator_loss(self.discriminator(x, fake), fake, y, self.m.gan_weight,
+                                            self.m.l1_weight)
         self.opt_g.zero_grad(set_to_none=True)
-        total, gan, l1 = generator_loss(self.discriminator(x, fake), fake, y, self.m.gan_weight, self.m.l1_weight)
         total.backward()
         self.opt_g.step()
         return {k: float(v.detach()) for k, v in (("loss_d", loss_d), ("loss_g", total), ("loss_gan", gan),
                                                    ("loss_l1", l1))}
 
     def state(self, epoch: int, best: float, history: list) -> dict:
-        return {"epoch": epoch, "best": best, "history": history, "generator": self.generator.state_dict(),
-                "discriminator": self.discriminator.state_dict(), "opt_g": self.opt_g.state_dict(),
-                "opt_d": self.opt_d.state_dict(), "generator_args": generator_args(self.m), "config": to_dict(self.m)}
+        out = {"epoch": epoch, "best": best, "history": history, "generator": self.generator.state_dict(),
+               "opt_g": self.opt_g.state_dict(), "generator_args": generator_args(self.m), "config": to_dict(self.m)}
+        if self.discriminator is not None:
+            out |= {"discriminator": self.discriminator.state_dict(), "opt_d": self.opt_d.state_dict()}
+        return out
 
     def load_state(self, state: dict) -> None:
         self.generator.load_state_dict(state["generator"])
-        self.discriminator.load_state_dict(state["discriminator"])
         self.opt_g.load_state_dict(state["opt_g"])
-        self.opt_d.load_state_dict(state["opt_d"])
+        if self.discriminator is not None:
+            self.discriminator.load_state_dict(state["discriminator"])
+            self.opt_d.load_state_dict(state["opt_d"])
 
 
 @torch.no_grad()
-def predict(generator: UNetGenerator, circles: np.ndarray, device: torch.device | str = "cpu") -> np.ndarray:
-    """The generator's 7 x H x W encoded G-buffers in [0, 1] for a 4 x H x W circle input in [0, 1]
-    (eval mode: no dropout, batch norm from its running statistics)."""
+def predict(generator: torch.nn.Module, inputs: np.ndarray, device: torch.device | str = "cpu") -> np.ndarray:
+    """The generator's 7 x H x W encoded G-buffers in [0, 1] for a 4 x H x W input in [0, 1] (eval
+    mode: no dropout, batch norm from its running statistics). Sides that are not multiples of
+    ``side_multiple`` are padded with empty pixels for the network and cropped back."""
     generator.eval()
-    x = torch.from_numpy(np.ascontiguousarray(circles, np.float32))[None].to(device)
-    return ((generator(2.0 * x - 1.0)[0] + 1.0) * 0.5).clamp(0.0, 1.0).cpu().numpy()
+    h, w = inputs.shape[1:]
+    k = side_multiple(generator)
+    x = torch.zeros((1, inputs.shape[0], -(-h // k) * k, -(-w // k) * k), device=device)
+    x[0, :, :h, :w] = torch.from_numpy(np.ascontiguousarray(inputs, np.float32)).to(device)
+    return ((generator(2.0 * x - 1.0)[0, :, :h, :w] + 1.0) * 0.5).clamp(0.0, 1.0).cpu().numpy()
 
 
-def validation_metrics(generator: UNetGenerator, views: list[tuple[np.ndarray, np.ndarray]], m: MetaballConfig,
+def validation_metrics(generator: torch.nn.Module, views: list[tuple[np.ndarray, np.ndarray]], m: MetaballConfig,
                        device: torch.device) -> dict:
     """Normal error (degrees) where prediction and target both show surface, silhouette IoU, the mean
     L1 of the encoded buffers, and ``score_deg``, which picks the best epoch: the normal error over
@@ -165,12 +221,22 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
         metaball_curves(folder / "loss_curve.png", history)  # a run stopped by its time limit has none yet
         return best
     train = _load(train_paths, m, "load train")
+    sizes = {x.shape[1:] for x, _ in train}
+    if not m.crop and len(sizes) > 1:
+        raise TrainingError(f"metaball.crop is 0 but the training views have {len(sizes)} sizes (the working scale "
+                            "draws each at its own): set metaball.crop")
     step = max(1, len(val_paths) // VAL_VIEWS)
     val = _load(val_paths[::step][:VAL_VIEWS], m, "load val") or train[:2]
     steps = max(1, len(train) // m.batch_size)
     log.info("metaball train: generator %.2f M parameters, discriminator %.2f M, %d views, %d steps of %d per epoch "
              "on %s", sum(p.numel() for p in nets.generator.parameters()) / 1e6,
-             sum(p.numel() for p in nets.discriminator.parameters()) / 1e6, len(train), steps, m.batch_size, device)
+             sum(p.numel() for p in (nets.discriminator or torch.nn.Module()).parameters()) / 1e6, len(train), steps,
+             m.batch_size, device)
+
+    def crop(view, rng):
+        x, y = (a.astype(np.float32) for a in view)
+        return random_crop(x, y, m.crop, rng) if m.crop else (x, y)
+
     began = time.perf_counter()
     for epoch in tqdm(range(start + 1, m.epochs + 1), desc="metaball train", unit="epoch", initial=start,
                       total=m.epochs):
@@ -180,7 +246,7 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
         sums: dict[str, float] = {}
         t0 = time.perf_counter()
         for s in tqdm(range(steps), desc=f"epoch {epoch}", unit="step", leave=False):
-            pairs = [augment(*(a.astype(np.float32) for a in train[i]), int(rng.integers(4)), bool(rng.random() < 0.5))
+            pairs = [augment(*crop(train[i], rng), int(rng.integers(4)), bool(rng.random() < 0.5))
                      for i in order[s * m.batch_size:(s + 1) * m.batch_size]]
             x = torch.from_numpy(np.stack([p[0] for p in pairs])).to(nets.device) * 2.0 - 1.0
             y = torch.from_numpy(np.stack([p[1] for p in pairs])).to(nets.device) * 2.0 - 1.0
@@ -212,7 +278,7 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
     return best
 
 
-def load_generator(path: Path, device: str = "cpu") -> tuple[UNetGenerator, dict]:
+def load_generator(path: Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     """A trained generator (``best.pt`` or the shipped weights) in eval mode, and its checkpoint dict."""
     try:
         state = torch.load(path, map_location=device, weights_only=True)
@@ -221,7 +287,7 @@ def load_generator(path: Path, device: str = "cpu") -> tuple[UNetGenerator, dict
                                 "metaball.weights") from None
     except Exception as exc:
         raise TrainingError(f"cannot read metaball weights {path} ({exc})") from None
-    generator = UNetGenerator(**state["generator_args"]).to(device)
+    generator = build_generator(state["generator_args"]).to(device)
     generator.load_state_dict(state["generator"])
     generator.eval()
     return generator, state

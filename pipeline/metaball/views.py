@@ -1,10 +1,13 @@
 """Particles as metaballs in the network's working frame, and the thesis' random ball sets.
 
-The network sees circles in pixels and depth codes, so a view must reach it at one scale: each view
-is moved into its camera's frame (camera at the origin looking down -Z) and scaled about the camera,
-which leaves the image unchanged, until its median ball has radius ``metaball.working_ball_radius``.
-Its depth code starts ``depth_margin`` in front of the nearest ball centre and spans ``depth_span``,
-so a code step means the same depth in ball radii in every view, near or far, large or small.
+A convolutional network's reach is a fixed number of pixels, so a view must reach it at one scale,
+in space and on screen. In space, each view is moved into its camera's frame (camera at the origin
+looking down -Z) and scaled about the camera, which leaves the image unchanged, until its median ball
+has radius ``metaball.working_ball_radius``; its depth code starts ``depth_margin`` in front of the
+nearest ball centre and spans ``depth_span``, so a code step means the same depth in ball radii in
+every view. On screen, the image is drawn at the size where the median ball's projected radius lies
+within half an octave below ``metaball.working_radius_px`` (``pixel_scale``, in half-octave steps so a
+sequence's scale does not change with every frame); the network's maps are resampled back.
 """
 
 from __future__ import annotations
@@ -16,7 +19,14 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import MetaballConfig
-from pipeline.metaball import PAPER_FOV_Y_DEG, MetaballParams, circle_input, metaball_targets
+from pipeline.metaball import (
+    PAPER_FOV_Y_DEG,
+    MetaballParams,
+    circle_input,
+    metaball_targets,
+    minimal_radius,
+    sphere_input,
+)
 from pipeline.parallel import Launcher
 
 PAPER_RADII = (0.5, 1.2)
@@ -40,17 +50,28 @@ class WorkingView:
 
     positions: np.ndarray  # N x 3 view-space centres times ``scale``
     radii: np.ndarray      # N ball radii in working units
-    camera: Camera
+    camera: Camera         # at the working image size
     params: MetaballParams
     scale: float           # working units per scene unit
+    size: tuple[int, int] = (0, 0)  # the view's own image (height, width)
 
     def circles(self, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The 4 x H x W circle input (``pipeline.metaball.circle_input``)."""
         return circle_input(self.positions, self.radii, self.camera, self.params, launch, colours)
 
-    def targets(self, launch: Launcher, colours: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The ray-marched G-buffers (``metaball_targets``) with depth back in scene units."""
-        out = metaball_targets(self.positions, self.radii, self.camera, self.params, launch, colours)
+    def inputs(self, kind: str, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
+        """The network input of ``kind``: 'circles' (the thesis') or 'spheres' (``sphere_input``)."""
+        if kind == "circles":
+            return self.circles(launch, colours)
+        return sphere_input(self.positions, self.radii, self.camera, self.params, launch)
+
+    def targets(self, launch: Launcher, colours: np.ndarray | None = None, own_size: bool = False) -> dict:
+        """The ray-marched G-buffers (``metaball_targets``) with depth back in scene units, at the
+        working scale (what the network learns) or at the view's ``own_size`` (what a viewer sees)."""
+        camera = self.camera
+        if own_size:
+            camera = Camera(camera.view, camera.fov_y_deg, self.size[1], self.size[0])
+        out = metaball_targets(self.positions, self.radii, camera, self.params, launch, colours)
         out["depth"] = (out["depth"] / self.scale).astype(np.float32)
         return out
 
@@ -65,6 +86,16 @@ class WorkingView:
         return ((p.depth_near + code * (p.depth_far - p.depth_near)) / self.scale).astype(np.float32)
 
 
+def network_input(inputs: np.ndarray, m: MetaballConfig) -> np.ndarray:
+    """A view's input as the generator of ``m`` sees it: the sphere input without the layers behind
+    when ``m.layers`` is off (the ablation), else unchanged."""
+    if m.input != "spheres" or m.layers:
+        return inputs
+    out = inputs.copy()
+    out[2:] = 0.0
+    return out
+
+
 def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballConfig) -> WorkingView:
     """The working frame of balls at world ``positions`` with radii ``ball_radii`` (scene units; one
     value or N) seen by ``camera``. Balls behind the camera are dropped."""
@@ -76,8 +107,32 @@ def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballC
     scale = m.working_ball_radius / float(np.median(radii)) if len(radii) else 1.0
     view = view * scale
     near = float((-view[:, 2]).min()) - m.depth_margin if len(view) else 7.0
-    origin = Camera(np.eye(4), camera.fov_y_deg, camera.width, camera.height)
-    return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale)
+    h, w = camera.height, camera.width
+    s = pixel_scale(view, radii * scale, camera, m.iso_level, m.working_radius_px)
+    origin = Camera(np.eye(4), camera.fov_y_deg, max(1, round(w * s)), max(1, round(h * s)))
+    return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale, (h, w))
+
+
+MAX_UPSCALE = 4.0
+"""Largest factor a view of small balls is drawn larger by (its cost grows with its square)."""
+
+
+def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: float,
+                working_radius_px: float) -> float:
+    """The image scale (..., 2^-1/2, 1, 2^1/2, ..., at most ``MAX_UPSCALE``) that brings the median
+    projected minimal radius of the balls on screen into (``working_radius_px`` / sqrt 2,
+    ``working_radius_px``]; 1 without balls on screen or with a working radius of 0."""
+    if working_radius_px <= 0 or not len(view):
+        return 1.0
+    depth = -view[:, 2]
+    f = camera.focal_px
+    x, y = camera.width / 2.0 + f * view[:, 0] / depth, camera.height / 2.0 - f * view[:, 1] / depth
+    seen = (x >= 0) & (x < camera.width) & (y >= 0) & (y < camera.height)
+    if not seen.any():
+        return 1.0
+    r_px = float(np.median(f * minimal_radius(radii[seen], iso_level) / depth[seen]))
+    half_octaves = min(-math.ceil(2.0 * math.log2(r_px / working_radius_px) - 1e-9), round(2 * math.log2(MAX_UPSCALE)))
+    return 2.0 ** (half_octaves / 2.0)
 
 
 def fluid_view(positions: np.ndarray, particle_radius: float, camera: Camera, m: MetaballConfig) -> WorkingView:

@@ -40,10 +40,12 @@ class Generator(nn.Module):
     """Refines a screen-space normal map (plus optional depth features) into a mesh-like one."""
 
     def __init__(self, in_channels: int = 5, base_channels: int = 24, downsamples: int = 2, res_blocks: int = 4,
-                 residual: bool = False):
+                 residual: bool = False, out_channels: int = 3):
         super().__init__()
+        if residual and out_channels != 3:
+            raise ValueError("a residual generator returns its input normal: out_channels must be 3")
         self.args = {"in_channels": in_channels, "base_channels": base_channels, "downsamples": downsamples,
-                     "res_blocks": res_blocks, "residual": residual}
+                     "res_blocks": res_blocks, "residual": residual, "out_channels": out_channels}
         self.residual = residual
         self.stride = 2**downsamples
         ch = [base_channels * 2**k for k in range(downsamples + 1)]
@@ -54,7 +56,7 @@ class Generator(nn.Module):
             nn.Sequential(nn.Upsample(scale_factor=2, mode="nearest"), conv_bn(ch[k + 1], ch[k]))
             for k in reversed(range(downsamples))
         ])
-        self.head = nn.Conv2d(ch[0], 3, 3, 1, 1)
+        self.head = nn.Conv2d(ch[0], out_channels, 3, 1, 1)
         if residual:  # starts as the identity of the input normal
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)

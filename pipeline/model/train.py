@@ -152,7 +152,7 @@ def init_generator(refiner: Refiner, source: str) -> None:
     except Exception as exc:
         raise TrainingError(f"train.init_from: cannot read {path} ({exc})") from None
     want = dict(refiner.generator.args)
-    got = {**{"residual": False}, **state.get("generator_args", {})}
+    got = {"residual": False, "out_channels": 3, **state.get("generator_args", {})}
     if got != want:
         raise TrainingError(f"train.init_from: {path} holds a generator {got}, but this config builds {want}; "
                             "set the train.gen_* keys, input_features and residual to match it")
