@@ -602,6 +602,9 @@ class MetaballConfig:
     weights: str = "shipped"
     """Generator for render and evaluate: 'shipped', 'trained' (this config's, training it if needed)
     or a checkpoint path."""
+    init_from: str = ""
+    """A new run starts from this generator ('shipped' or a checkpoint path of the same architecture
+    and input), so training goes on across sessions and code changes; '' starts from scratch."""
     target_stride: int = Field(4, ge=1)
     """Evaluate compares the metaball method with its own ray-marched target on every n-th frame it
     evaluates (the march costs seconds a view at 1024 px on a CPU)."""

@@ -163,6 +163,15 @@ def test_training_resumes_as_a_straight_run_would_and_the_generator_predicts(tmp
     history = [json.loads(line) for line in (straight / "metrics.jsonl").read_text().splitlines()]
     assert [h["epoch"] for h in history] == [1, 2] and 0 <= history[-1]["val"]["iou"] <= 1
     assert (straight / "loss_curve.png").exists()
+    # a new run can start from it (the next session goes on), not from another architecture's
+    from pipeline.metaball.train import build_generator, generator_args, init_generator
+    fresh = build_generator(generator_args(SMALL))
+    init_generator(fresh, MetaballConfig(**{**SMALL.__dict__, "init_from": str(straight / "best.pt")}))
+    for k, v in torch.load(straight / "best.pt", weights_only=True)["generator"].items():
+        assert torch.equal(fresh.state_dict()[k], v), k
+    with pytest.raises(RuntimeError, match="holds a generator"):
+        init_generator(fresh, MetaballConfig(**{**SMALL.__dict__, "base_channels": 8,
+                                                "init_from": str(straight / "best.pt")}))
     # the generator as the metaball method: any image size (drawn at the working scale, resampled back)
     net = MetaballNet(straight / "best.pt")
     assert net.config == SMALL

@@ -217,6 +217,8 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
         nets.load_state(state)
         start, best, history = int(state["epoch"]), float(state["best"]), list(state["history"])
         log.info("metaball train: resuming after epoch %d", start)
+    elif m.init_from:
+        init_generator(nets.generator, m)
     if start >= m.epochs:
         metaball_curves(folder / "loss_curve.png", history)  # a run stopped by its time limit has none yet
         return best
@@ -276,6 +278,25 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
             raise TimeLimitReached(epoch)
     metaball_curves(folder / "loss_curve.png", history)
     return best
+
+
+def init_generator(generator: torch.nn.Module, m: MetaballConfig) -> None:
+    """Load the generator weights ``m.init_from`` names into a new run's ``generator``; the checkpoint
+    must hold the same architecture and have been trained on the same input."""
+    path = SHIPPED_WEIGHTS if m.init_from == "shipped" else Path(m.init_from)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise TrainingError(f"metaball.init_from: no checkpoint at {path}") from None
+    except Exception as exc:
+        raise TrainingError(f"metaball.init_from: cannot read {path} ({exc})") from None
+    want, got = generator_args(m), state.get("generator_args", {})
+    trained_on = state.get("config", {}).get("input", "circles")
+    if got != want or trained_on != m.input:
+        raise TrainingError(f"metaball.init_from: {path} holds a generator {got} trained on {trained_on}, but this "
+                            f"config builds {want} for {m.input}")
+    generator.load_state_dict(state["generator"])
+    log.info("metaball train: starting from the generator of %s", path)
 
 
 def load_generator(path: Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
