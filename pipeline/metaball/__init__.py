@@ -37,8 +37,8 @@ TARGET_CHANNELS = ("R", "G", "B", "Z", "N.X", "N.Y", "N.Z")
 INPUT_CHANNELS = ("R", "G", "B", "Z")
 """The 4 channels of ``circle_input`` (the thesis' generator input), in order."""
 
-SPHERE_CHANNELS = ("A", "relief", "behind", "thickness")
-"""The 4 channels of ``sphere_input`` (the default generator input), in order."""
+SPHERE_CHANNELS = ("A", "N.X", "N.Y", "N.Z", "relief", "behind", "thickness")
+"""The 7 channels of ``sphere_input`` (the default generator input), in order."""
 
 RELIEF_WINDOW_RADII = 6.0
 """Half width (projected ball radii) of the window the relief compares the front depth with."""
@@ -216,21 +216,13 @@ def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
     return image.numpy().reshape(4, h, w)
 
 
-def sphere_input(positions: np.ndarray, radii, camera: Camera, params: MetaballParams,
-                 launch: Launcher) -> np.ndarray:
-    """The default network input for one view (4 x H x W float32, ``SPHERE_CHANNELS``): each ball as
-    the sphere of its minimal radius, splatted exactly (ray-sphere), and what lies behind it.
-
-    0. ``A``: 1 where a sphere covers the pixel;
-    1. ``relief``: tanh of the front depth minus its mean over a window of +-6 projected radii, in
-       units of 4 ball radii: the balls' own shape and which parts stand in front of their
-       neighbourhood, scale-free (absolute depth never enters);
-    2. ``behind``: 1 - gap / 8 radii, the gap from the front entry to the nearest sphere entered more
-       than one radius behind it (0 where none is within 8 radii): a second layer that still shapes
-       the surface, and where it stops doing so (the thesis' named failure: balls at different
-       depths blended);
-    3. ``thickness``: how far the ray runs from the first entry to the last exit, over 8 radii.
-    Lengths are in units of the median ball's minimal radius; 0 outside the spheres."""
+def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: MetaballParams,
+                  launch: Launcher) -> dict[str, np.ndarray | float]:
+    """The balls as the spheres of their minimal radius, splatted exactly (ray-sphere), for one view:
+    per pixel the view depth where the ray enters its first sphere (``front``, 0 where none), that
+    sphere's unit normal (``normals``, H x W x 3), where it leaves its last (``back``) and where it
+    enters the nearest sphere more than a radius behind ``front`` (``behind``, 0 where none); ``r``
+    is the median minimal radius and ``r_px`` its median projection (pixels)."""
     p = params
     device = launch.device
     w, h = camera.width, camera.height
@@ -239,26 +231,57 @@ def sphere_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
     r_min = minimal_radius(rad, p.iso_level)
     keep = -view[:, 2] > r_min  # spheres wholly in front of the camera
     view, r_min = view[keep], r_min[keep]
+    empty = {"front": np.zeros((h, w), np.float32), "back": np.zeros((h, w), np.float32),
+             "behind": np.zeros((h, w), np.float32), "normals": np.zeros((h, w, 3), np.float32),
+             "r": 1.0, "r_px": 1.0}
     if len(view) == 0:
-        return np.zeros((4, h, w), np.float32)
+        return empty
     r = float(np.median(r_min))
     t_in, t_out = _support_span(view, r_min, camera, p, launch)
     t_behind = wp.full(w * h, _EMPTY, dtype=float, device=device)
+    normals = wp.zeros(w * h, dtype=wp.vec3, device=device)
     args = [wp.array(view.astype(np.float32), dtype=wp.vec3, device=device),
             wp.array(r_min.astype(np.float32), dtype=float, device=device), camera.focal_px, w, h]
-    launch.tasks(K.splat_behind, len(view), [[*args, r0, r1, r, t_in, t_behind] for r0, r1 in row_bands(launch, h)])
+    bands = row_bands(launch, h)
+    launch.tasks(K.splat_behind, len(view), [[*args, r0, r1, r, t_in, t_behind] for r0, r1 in bands])
+    launch.tasks(K.splat_front_normals, len(view), [[*args, r0, r1, t_in, normals] for r0, r1 in bands])
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
+    return {"front": np.where(covered, front, 0.0).astype(np.float32),
+            "back": np.where(covered, back, 0.0).astype(np.float32),
+            "behind": np.where(behind < 0.5 * _EMPTY, behind, 0.0).astype(np.float32),
+            "normals": normals.numpy().reshape(h, w, 3), "r": r,
+            "r_px": float(np.median(camera.focal_px * r_min / -view[:, 2]))}
+
+
+def sphere_input(layers: dict) -> np.ndarray:
+    """The default network input (7 x H x W float32 in [0, 1], ``SPHERE_CHANNELS``) of a view's
+    ``sphere_layers``:
+
+    0. ``A``: 1 where a sphere covers the pixel;
+    1-3. ``N``: the front sphere's normal as (n + 1) / 2: the surface's orientation, which the blend
+       smooths (the refiner's input, here exact);
+    4. ``relief``: tanh of the front depth minus its mean over a window of +-6 projected radii, in
+       units of 4 ball radii (mapped to [0, 1]): which parts stand in front of their neighbourhood,
+       scale-free (absolute depth never enters);
+    5. ``behind``: 1 - gap / 8 radii, the gap from the front entry to the nearest sphere entered more
+       than one radius behind it (0 where none is within 8 radii): a second layer that still shapes
+       the surface, and where it stops doing so (the thesis' named failure: balls at different
+       depths blended);
+    6. ``thickness``: how far the ray runs from the first entry to the last exit, over 8 radii.
+    All 0 outside the spheres."""
+    d, r = layers["front"], float(layers["r"])
+    covered = d > 0
     m = covered.astype(np.float32)
-    d = np.where(covered, front, 0.0).astype(np.float32)
-    r_px = float(np.median(camera.focal_px * r_min / -view[:, 2]))
-    size = 2 * max(1, round(RELIEF_WINDOW_RADII * r_px)) + 1
+    size = 2 * max(1, round(RELIEF_WINDOW_RADII * float(layers["r_px"]))) + 1
     local = box_mean(d, size) / np.maximum(box_mean(m, size), 1e-6)
     span = LAYER_SPAN_RADII * r
-    channels = [m, np.tanh((d - local) / (RELIEF_SCALE_RADII * r)),
-                np.where(behind < 0.5 * _EMPTY, np.clip(1.0 - (behind - front) / span, 0.0, 1.0), 0.0),
-                np.clip((back - front) / span, 0.0, 1.0)]
-    return np.where(covered, np.stack(channels), 0.0).astype(np.float32)
+    behind = layers["behind"]
+    channels = [m[None], 0.5 * (np.moveaxis(layers["normals"], -1, 0) + 1.0),
+                (0.5 * (np.tanh((d - local) / (RELIEF_SCALE_RADII * r)) + 1.0))[None],
+                np.where(behind > 0, np.clip(1.0 - (behind - d) / span, 0.0, 1.0), 0.0)[None],
+                np.clip((layers["back"] - d) / span, 0.0, 1.0)[None]]
+    return np.where(covered, np.concatenate(channels), 0.0).astype(np.float32)
 
 
 def encode_targets(targets: dict[str, np.ndarray], params: MetaballParams) -> np.ndarray:

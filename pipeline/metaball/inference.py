@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.ndimage import distance_transform_edt
 
 from pipeline.camera import Camera
 from pipeline.config import MetaballConfig, from_dict
-from pipeline.metaball import decode_gbuffers
+from pipeline.metaball import decode_gbuffers, sphere_input
 from pipeline.metaball.train import SHIPPED_WEIGHTS, load_generator, predict
 from pipeline.metaball.views import WorkingView, fluid_view, network_input
 from pipeline.model.scale import resize_map
@@ -32,6 +33,7 @@ class MetaballNet:
     def __init__(self, path: Path | str = SHIPPED_WEIGHTS, device: str = "cpu"):
         self.device = torch.device(device)
         self.generator, state = load_generator(Path(path), str(self.device))
+        self.generator.to(memory_format=torch.channels_last)
         # checkpoints from before the choice saw the thesis' circles at the view's own size
         config = {"input": "circles", "working_radius_px": 0.0, "architecture": "unet", "crop": 0, **state["config"]}
         self.config: MetaballConfig = from_dict(MetaballConfig, config, path, "config")
@@ -47,13 +49,16 @@ class MetaballNet:
         ``colour`` of one view (H x W [x 3])."""
         m = self.config
         view = self.view(positions, particle_radius, camera)
-        inputs = network_input(view.inputs(m.input, launch), m)
+        layers = view.layers(launch) if m.input == "spheres" else None
+        inputs = network_input(sphere_input(layers) if layers is not None else view.inputs(m.input, launch), m)
         h, w = inputs.shape[1:]
         rows, cols = _reach(inputs, math.ceil(m.kernel_radius_radii * m.working_radius_px) + 2)
         out = {"colour": np.zeros((h, w, 3), np.float32), "depth": np.zeros((h, w), np.float32),
                "normals": np.zeros((h, w, 3), np.float32), "mask": np.zeros((h, w), np.float32)}
         if rows.stop > rows.start:
             part = decode_gbuffers(predict(self.generator, inputs[:, rows, cols], self.device), view.params)
+            if layers is not None:  # depth from the splat (the sphere input has none to learn from)
+                part["depth"] = nearest_depth(layers["front"][rows, cols])
             for key, a in part.items():
                 out[key][rows, cols] = a
         mask = out["mask"] > 0
@@ -66,6 +71,16 @@ class MetaballNet:
         """The ray-marched metaball surface of the same particles (``metaball_targets``; depth in scene
         units) at the view's own size: what the network's maps stand in for."""
         return self.view(positions, particle_radius, camera).targets(launch, own_size=True)
+
+
+def nearest_depth(front: np.ndarray) -> np.ndarray:
+    """Each pixel's depth of the nearest pixel a sphere covers: the blended surface's depth on and
+    just around the splat (it lies within a fraction of a ball radius of the spheres' front)."""
+    covered = front > 0
+    if covered.all() or not covered.any():
+        return front
+    _, (r, c) = distance_transform_edt(~covered, return_indices=True)
+    return front[r, c]
 
 
 def _reach(inputs: np.ndarray, margin: int) -> tuple[slice, slice]:

@@ -195,6 +195,35 @@ def splat_behind(
 
 
 @wp.kernel
+def splat_front_normals(
+    offset: int,
+    centres_view: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    focal: float,
+    width: int,
+    height: int,
+    row0: int,
+    row1: int,
+    t_front: wp.array(dtype=float),
+    normals: wp.array(dtype=wp.vec3),
+):
+    """The unit view-space normal of the sphere a pixel's ray enters first (the one whose entry is
+    ``t_front``, computed alike, so equal to the bit), rows [row0, row1)."""
+    i = wp.tid() + offset
+    c = centres_view[i]
+    rad = radii[i]
+    box = splat_bounds(c, rad, focal, width, height, row0, row1)
+    cc = wp.dot(c, c) - rad * rad
+    for py in range(box[2], box[3] + 1):
+        for px in range(box[0], box[1] + 1):
+            ray = pixel_ray(px, py, width, height, focal)
+            hit = ray_sphere(ray, c, cc)
+            idx = py * width + px
+            if hit[2] >= 0.0 and hit[0] == t_front[idx]:
+                normals[idx] = (ray * hit[0] - c) / rad
+
+
+@wp.kernel
 def march_metaballs(
     offset: int,
     grid: wp.uint64,

@@ -26,6 +26,7 @@ from pipeline.metaball import (
     metaball_targets,
     minimal_radius,
     sphere_input,
+    sphere_layers,
 )
 from pipeline.parallel import Launcher
 
@@ -59,11 +60,15 @@ class WorkingView:
         """The 4 x H x W circle input (``pipeline.metaball.circle_input``)."""
         return circle_input(self.positions, self.radii, self.camera, self.params, launch, colours)
 
+    def layers(self, launch: Launcher) -> dict:
+        """The balls' sphere splat (``pipeline.metaball.sphere_layers``; depths in working units)."""
+        return sphere_layers(self.positions, self.radii, self.camera, self.params, launch)
+
     def inputs(self, kind: str, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The network input of ``kind``: 'circles' (the thesis') or 'spheres' (``sphere_input``)."""
         if kind == "circles":
             return self.circles(launch, colours)
-        return sphere_input(self.positions, self.radii, self.camera, self.params, launch)
+        return sphere_input(self.layers(launch))
 
     def targets(self, launch: Launcher, colours: np.ndarray | None = None, own_size: bool = False) -> dict:
         """The ray-marched G-buffers (``metaball_targets``) with depth back in scene units, at the
@@ -92,7 +97,7 @@ def network_input(inputs: np.ndarray, m: MetaballConfig) -> np.ndarray:
     if m.input != "spheres" or m.layers:
         return inputs
     out = inputs.copy()
-    out[2:] = 0.0
+    out[5:] = 0.0
     return out
 
 
