@@ -87,14 +87,15 @@ def loss_curves(path: Path, history: list[dict]) -> None:
 
 
 def metaball_curves(path: Path, history: list[dict]) -> None:
-    """The metaball pair's losses and validation normal error per epoch."""
+    """The metaball generator's (and discriminator's) losses and validation normal error per epoch."""
     plt = _pyplot()
     if not history:
         return
     epochs = [h["epoch"] for h in history]
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
     for key in ("loss_d", "loss_gan", "loss_l1"):
-        a.plot(epochs, [h[key] for h in history], label=key.replace("loss_", ""))
+        if any(h[key] > 0 for h in history):  # no adversarial terms when the generator learns L1 alone
+            a.plot(epochs, [h[key] for h in history], label=key.replace("loss_", ""))
     a.set_yscale("log")
     a.set_xlabel("epoch")
     a.set_title("training losses")

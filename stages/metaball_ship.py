@@ -30,7 +30,8 @@ def card(run, entry: cache.CacheEntry, state: dict, history: list[dict]) -> dict
     keys, train, val = metaball_train.collect(run)
     config = Path(run.loaded.path).resolve()
     return {
-        "what": "U-Net generator of the image-space metaballs (Horvath 2019) trained by `make metaball-train` on "
+        "what": f"{'ResNet' if m.architecture == 'resnet' else 'U-Net'} generator of the image-space metaballs "
+                f"(Horvath 2019) on the {m.input} input, trained by `make metaball-train` on "
                 f"{config.relative_to(ROOT) if config.is_relative_to(ROOT) else config}",
         "epoch": int(state["epoch"]),
         "epochs_run": len(history),
@@ -38,7 +39,9 @@ def card(run, entry: cache.CacheEntry, state: dict, history: list[dict]) -> dict
         "metaball_config": state["config"],
         "data": {"training_views": len(train), "validation_views": len(val), "dataset_keys": keys,
                  "views": f"every {m.frame_stride}th frame of each training scene from {m.views_per_frame} random "
-                          f"cameras at {m.size} x {m.size}, plus {m.random_sets} random ball sets x {m.repeats}",
+                          f"cameras at {m.size} x {m.size}, plus {m.random_sets} random ball sets x {m.repeats}, drawn "
+                          + (f"with the median ball at {m.working_radius_px:g} px" if m.working_radius_px
+                             else "at the cameras' size"),
                  "held_out_scenes": list(run.config.dataset.holdout_scenes)},
         "device": run.device,
         "train_seconds": round(sum(h.get("train_seconds", 0.0) for h in history), 1),
