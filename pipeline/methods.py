@@ -37,7 +37,7 @@ from pipeline.views import raytraced_target_channels, screen_space_inputs, targe
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
 NAMES = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "aniso": "ellipsoids",
-         "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)", "metaball": "metaballs (pix2pix)",
+         "aniso_nrf": "ellipsoids + narrow-range", "refined": "refined (cGAN)", "metaball": "metaballs (network)",
          "mesh": "mesh (reference)"}
 """How each method is called in reports, comparison titles and figures."""
 

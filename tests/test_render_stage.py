@@ -150,7 +150,7 @@ def test_evaluate_smoke(tmp_path):
     report = (entry / "report.md").read_text()
     assert "## 64 x 64" in report and "## 96 x 96" in report and "Refined against the filters" in report
     for method in ("Gaussian", "bilateral", "narrow-range", "ellipsoids", "ellipsoids + narrow-range",
-                   "refined (cGAN)", "metaballs (pix2pix)", "mesh (reference)"):
+                   "refined (cGAN)", "metaballs (network)", "mesh (reference)"):
         assert method in report
     assert "Metaballs against their own ray-marched surface" in report
     metrics = json.loads((entry / "metrics.json").read_text())
