@@ -218,7 +218,7 @@ def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
 
 def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: MetaballParams,
                   launch: Launcher) -> dict[str, np.ndarray | float]:
-    """The balls as the spheres of their minimal radius, splatted exactly (ray-sphere), for one view:
+    """The balls as the spheres of their minimal radius, splatted exactly (ray-sphere, two passes), for one view:
     per pixel the view depth where the ray enters its first sphere (``front``, 0 where none), that
     sphere's unit normal (``normals``, H x W x 3), where it leaves its last (``back``) and where it
     enters the nearest sphere more than a radius behind ``front`` (``behind``, 0 where none); ``r``
@@ -243,8 +243,8 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     args = [wp.array(view.astype(np.float32), dtype=wp.vec3, device=device),
             wp.array(r_min.astype(np.float32), dtype=float, device=device), camera.focal_px, w, h]
     bands = row_bands(launch, h)
-    launch.tasks(K.splat_behind, len(view), [[*args, r0, r1, r, t_in, t_behind] for r0, r1 in bands])
-    launch.tasks(K.splat_front_normals, len(view), [[*args, r0, r1, t_in, normals] for r0, r1 in bands])
+    launch.tasks(K.splat_behind_and_normals, len(view),
+                 [[*args, r0, r1, r, t_in, t_behind, normals] for r0, r1 in bands])
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
     return {"front": np.where(covered, front, 0.0).astype(np.float32),

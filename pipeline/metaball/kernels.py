@@ -165,7 +165,7 @@ def splat_supports(
 
 
 @wp.kernel
-def splat_behind(
+def splat_behind_and_normals(
     offset: int,
     centres_view: wp.array(dtype=wp.vec3),
     radii: wp.array(dtype=float),
@@ -177,38 +177,12 @@ def splat_behind(
     gap: float,
     t_front: wp.array(dtype=float),
     t_behind: wp.array(dtype=float),
-):
-    """The second depth layer of a sphere splat: per pixel the nearest entry into a sphere that lies
-    more than ``gap`` behind the first entry ``t_front`` (a ball behind the front one, not the
-    front one's neighbour in the same layer), rows [row0, row1)."""
-    i = wp.tid() + offset
-    c = centres_view[i]
-    rad = radii[i]
-    box = splat_bounds(c, rad, focal, width, height, row0, row1)
-    cc = wp.dot(c, c) - rad * rad
-    for py in range(box[2], box[3] + 1):
-        for px in range(box[0], box[1] + 1):
-            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, cc)
-            idx = py * width + px
-            if hit[2] >= 0.0 and hit[0] > t_front[idx] + gap:
-                wp.atomic_min(t_behind, idx, hit[0])
-
-
-@wp.kernel
-def splat_front_normals(
-    offset: int,
-    centres_view: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    focal: float,
-    width: int,
-    height: int,
-    row0: int,
-    row1: int,
-    t_front: wp.array(dtype=float),
     normals: wp.array(dtype=wp.vec3),
 ):
-    """The unit view-space normal of the sphere a pixel's ray enters first (the one whose entry is
-    ``t_front``, computed alike, so equal to the bit), rows [row0, row1)."""
+    """The second pass of a sphere splat over its first entries ``t_front``, rows [row0, row1): per
+    pixel the nearest entry into a sphere more than ``gap`` behind ``t_front`` (a ball behind the
+    front one, not its neighbour in the same layer), and the unit view-space normal of the sphere
+    entered first (the one whose entry equals ``t_front`` to the bit: it is computed alike)."""
     i = wp.tid() + offset
     c = centres_view[i]
     rad = radii[i]
@@ -219,8 +193,11 @@ def splat_front_normals(
             ray = pixel_ray(px, py, width, height, focal)
             hit = ray_sphere(ray, c, cc)
             idx = py * width + px
-            if hit[2] >= 0.0 and hit[0] == t_front[idx]:
-                normals[idx] = (ray * hit[0] - c) / rad
+            if hit[2] >= 0.0:
+                if hit[0] == t_front[idx]:
+                    normals[idx] = (ray * hit[0] - c) / rad
+                elif hit[0] > t_front[idx] + gap:
+                    wp.atomic_min(t_behind, idx, hit[0])
 
 
 @wp.kernel

@@ -28,6 +28,7 @@ from pipeline.metaball import (
     sphere_input,
     sphere_layers,
 )
+from pipeline.model.scale import working_half_octaves
 from pipeline.parallel import Launcher
 
 PAPER_RADII = (0.5, 1.2)
@@ -118,15 +119,12 @@ def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballC
     return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale, (h, w))
 
 
-MAX_UPSCALE = 4.0
-"""Largest factor a view of small balls is drawn larger by (its cost grows with its square)."""
-
-
 def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: float,
                 working_radius_px: float) -> float:
-    """The image scale (..., 2^-1/2, 1, 2^1/2, ..., at most ``MAX_UPSCALE``) that brings the median
-    projected minimal radius of the balls on screen into (``working_radius_px`` / sqrt 2,
-    ``working_radius_px``]; 1 without balls on screen or with a working radius of 0."""
+    """The image scale (..., 2^-1/2, 1, 2^1/2, ..., at most ``MAX_UPSCALE``: the refiner's rule,
+    ``pipeline.model.scale.working_half_octaves``) that brings the median projected minimal radius
+    of the balls on screen into (``working_radius_px`` / sqrt 2, ``working_radius_px``]; 1 without
+    balls on screen or with a working radius of 0."""
     if working_radius_px <= 0 or not len(view):
         return 1.0
     depth = -view[:, 2]
@@ -136,8 +134,7 @@ def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: 
     if not seen.any():
         return 1.0
     r_px = float(np.median(f * minimal_radius(radii[seen], iso_level) / depth[seen]))
-    half_octaves = min(-math.ceil(2.0 * math.log2(r_px / working_radius_px) - 1e-9), round(2 * math.log2(MAX_UPSCALE)))
-    return 2.0 ** (half_octaves / 2.0)
+    return 2.0 ** (working_half_octaves(r_px, working_radius_px) / 2.0)
 
 
 def fluid_view(positions: np.ndarray, particle_radius: float, camera: Camera, m: MetaballConfig) -> WorkingView:

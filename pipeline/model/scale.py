@@ -65,6 +65,12 @@ def host_flags(flags) -> np.ndarray:
     return flags.cpu().numpy() if is_tensor(flags) else np.asarray(flags)
 
 
+def working_half_octaves(r_px: float, working_radius_px: float) -> int:
+    """Half octaves (scale 2^(k/2)) that bring a projected radius of ``r_px`` pixels into
+    (``working_radius_px`` / sqrt 2, ``working_radius_px``], at most ``MAX_UPSCALE`` up."""
+    return min(-math.ceil(2.0 * math.log2(r_px / working_radius_px) - 1e-9), round(2 * math.log2(MAX_UPSCALE)))
+
+
 def working_scale(depth, focal_px: float, radius: float, working_radius_px: float, max_pixels: int = 0) -> float:
     """The factor (..., 1/2, 2^-1/2, 1, 2^1/2, 2, ...) that brings the median projected radius into
     (``working_radius_px`` / sqrt 2, ``working_radius_px``], at most ``MAX_UPSCALE`` (1 when there is
@@ -73,7 +79,7 @@ def working_scale(depth, focal_px: float, radius: float, working_radius_px: floa
     r = median_radius_px(depth, focal_px, radius)
     if working_radius_px <= 0 or r <= 0:
         return 1.0
-    half_octaves = min(-math.ceil(2.0 * math.log2(r / working_radius_px) - 1e-9), round(2 * math.log2(MAX_UPSCALE)))
+    half_octaves = working_half_octaves(r, working_radius_px)
     if max_pixels and half_octaves > 0:
         box = fluid_box_pixels(depth)
         while half_octaves > 0 and box * 2.0 ** half_octaves > max_pixels:
