@@ -542,13 +542,20 @@ class MetaballConfig:
     """Outline width in the circle input, a share of the circle's diameter (the thesis' 0.05)."""
     outline_min_px: float = Field(1.0, ge=0.0)
     """Narrowest outline (px), so that small circles still show."""
-    input: Literal["spheres", "circles"] = "spheres"
+    input: Literal["field", "spheres", "circles"] = "field"
     """What the generator sees: the balls as exactly splatted spheres with the layer behind them
-    (``sphere_input``) or the thesis' circle outlines with a centre-depth code (``circle_input``)."""
+    (``sphere_input``) whose normals are the metaball field's at the front sphere (``field``) or the
+    spheres' own (``spheres``), or the thesis' circle outlines with a centre-depth code (``circles``)."""
+    splat_radius: float = Field(1.5, gt=0.0)
+    """Radius of the splatted spheres, in minimal radii (an isolated ball's surface): the blend
+    swells the surface beyond the balls, so a larger sphere starts nearer to it."""
+    field_steps: int = Field(1, ge=0)
+    """With ``input: field``: Newton steps along each ray from the front sphere towards the
+    iso-surface before the field's normal is taken (each costs one more field sample a pixel)."""
     layers: bool = True
-    """With ``input: spheres``: the channels of what lies behind the front splat (``behind``,
+    """With a sphere input: the channels of what lies behind the front splat (``behind``,
     ``thickness``); False zeroes them (the ablation of the depth separation)."""
-    working_radius_px: float = Field(3.0, ge=0.0)
+    working_radius_px: float = Field(2.0, ge=0.0)
     """Views are drawn at the image scale where the median ball's projected radius is within half an
     octave below this (px), and the maps resampled back (0: the view's own size, the thesis')."""
     architecture: Literal["resnet", "unet"] = "resnet"
@@ -556,6 +563,9 @@ class MetaballConfig:
     thesis' eight-level U-Net (sides multiples of 256)."""
     res_blocks: int = Field(4, ge=0)
     """Residual blocks of the ResNet generator."""
+    residual: bool = True
+    """With a sphere input and the ResNet: the generator's normal is the input's plus a learnt
+    correction (it starts as its input; the other maps are predicted outright)."""
     crop: int = Field(128, ge=0, multiple_of=4)
     """Training crop side (px, random, where the target shows surface; the U-Net needs multiples of
     256); 0: whole views, which must then all have one size."""

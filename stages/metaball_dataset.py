@@ -42,8 +42,9 @@ def roles(run: Run) -> tuple[list[SceneConfig], list[SceneConfig]]:
 
 
 VIEW_FIELDS = ("ball_radius_radii", "iso_level", "kernel_radius_radii", "working_ball_radius", "depth_margin",
-               "depth_span", "step", "bisections", "outline_width", "outline_min_px", "input", "working_radius_px",
-               "size", "frame_stride", "max_frames", "views_per_frame", "random_sets", "repeats", "max_balls", "seed")
+               "depth_span", "step", "bisections", "outline_width", "outline_min_px", "input", "splat_radius",
+               "field_steps", "working_radius_px", "size", "frame_stride", "max_frames", "views_per_frame",
+               "random_sets", "repeats", "max_balls", "seed")
 """The ``metaball`` keys the views depend on (the network's and training's keys change none of them)."""
 
 

@@ -216,21 +216,23 @@ def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
     return image.numpy().reshape(4, h, w)
 
 
-def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: MetaballParams,
-                  launch: Launcher) -> dict[str, np.ndarray | float]:
-    """The balls as the spheres of their minimal radius, splatted exactly (ray-sphere, two passes), for one view:
-    per pixel the view depth where the ray enters its first sphere (``front``, 0 where none), that
-    sphere's unit normal (``normals``, H x W x 3), where it leaves its last (``back``) and where it
-    enters the nearest sphere more than a radius behind ``front`` (``behind``, 0 where none); ``r``
-    is the median minimal radius and ``r_px`` its median projection (pixels)."""
+def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: MetaballParams, launch: Launcher,
+                  splat_radius: float = 1.0, field_steps: int | None = None) -> dict[str, np.ndarray | float]:
+    """The balls as spheres of ``splat_radius`` times their minimal radius, splatted exactly (ray-sphere,
+    two passes), for one view: per pixel the view depth where the ray enters its first sphere
+    (``front``, 0 where none), the unit normal there (``normals``, H x W x 3: the sphere's own, or
+    with ``field_steps`` the metaball field's after that many Newton steps towards its iso-surface,
+    ``kernels.field_normals``), where the ray leaves its last sphere (``back``) and where it enters
+    the nearest sphere more than a radius behind ``front`` (``behind``, 0 where none); ``r`` is the
+    median sphere radius and ``r_px`` its median projection (pixels)."""
     p = params
     device = launch.device
     w, h = camera.width, camera.height
     pos, rad, _ = _balls(positions, radii, None, p)
     view = camera.to_view(pos)
-    r_min = minimal_radius(rad, p.iso_level)
+    r_min = splat_radius * minimal_radius(rad, p.iso_level)
     keep = -view[:, 2] > r_min  # spheres wholly in front of the camera
-    view, r_min = view[keep], r_min[keep]
+    view, r_min, rad = view[keep], r_min[keep], rad[keep]
     empty = {"front": np.zeros((h, w), np.float32), "back": np.zeros((h, w), np.float32),
              "behind": np.zeros((h, w), np.float32), "normals": np.zeros((h, w, 3), np.float32),
              "r": 1.0, "r_px": 1.0}
@@ -245,6 +247,8 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     bands = row_bands(launch, h)
     launch.tasks(K.splat_behind_and_normals, len(view),
                  [[*args, r0, r1, r, t_in, t_behind, normals] for r0, r1 in bands])
+    if field_steps is not None:
+        field_normals(view, rad, camera, p, launch, t_in, field_steps, normals)
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
     return {"front": np.where(covered, front, 0.0).astype(np.float32),
@@ -252,6 +256,24 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
             "behind": np.where(behind < 0.5 * _EMPTY, behind, 0.0).astype(np.float32),
             "normals": normals.numpy().reshape(h, w, 3), "r": r,
             "r_px": float(np.median(camera.focal_px * r_min / -view[:, 2]))}
+
+
+def field_normals(view: np.ndarray, radii: np.ndarray, camera: Camera, params: MetaballParams, launch: Launcher,
+                  t_front: wp.array, steps: int, normals: wp.array) -> None:
+    """Overwrite ``normals`` (H x W, view space) with the metaball field's where the rays enter their
+    front sphere at ``t_front`` (``kernels.field_normals``, Newton steps of at most a ball radius) for
+    balls at view-space centres ``view`` with ``radii``. Needs the field's cut-off (a hash grid)."""
+    k = params.kernel_radius_radii
+    if k <= 0:
+        raise ValueError("field normals need a kernel radius (metaball.kernel_radius_radii > 0)")
+    device = launch.device
+    centres = wp.array(view.astype(np.float32), dtype=wp.vec3, device=device)
+    reach = float(k * radii.max())
+    grid = hash_grid(centres, view, reach, device)
+    launch(K.field_normals, camera.width * camera.height,
+           [grid.id, centres, wp.array(radii.astype(np.float32), dtype=float, device=device), float(k), reach,
+            params.iso_level, camera.width, camera.height, camera.focal_px, t_front, int(steps),
+            float(np.median(radii)), normals])
 
 
 def sphere_input(layers: dict) -> np.ndarray:

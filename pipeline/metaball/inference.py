@@ -35,7 +35,8 @@ class MetaballNet:
         self.generator, state = load_generator(Path(path), str(self.device))
         self.generator.to(memory_format=torch.channels_last)
         # checkpoints from before the choice saw the thesis' circles at the view's own size
-        config = {"input": "circles", "working_radius_px": 0.0, "architecture": "unet", "crop": 0, **state["config"]}
+        config = {"input": "circles", "working_radius_px": 0.0, "architecture": "unet", "crop": 0, "splat_radius": 1.0,
+                  "residual": False, **state["config"]}
         self.config: MetaballConfig = from_dict(MetaballConfig, config, path, "config")
         self.path = Path(path)
 
@@ -49,7 +50,7 @@ class MetaballNet:
         ``colour`` of one view (H x W [x 3])."""
         m = self.config
         view = self.view(positions, particle_radius, camera)
-        layers = view.layers(launch) if m.input == "spheres" else None
+        layers = view.layers(launch) if m.input != "circles" else None
         inputs = network_input(sphere_input(layers) if layers is not None else view.inputs(m.input, launch), m)
         h, w = inputs.shape[1:]
         rows, cols = _reach(inputs, math.ceil(m.kernel_radius_radii * m.working_radius_px) + 2)

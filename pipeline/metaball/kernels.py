@@ -201,6 +201,47 @@ def splat_behind_and_normals(
 
 
 @wp.kernel
+def field_normals(
+    offset: int,
+    grid: wp.uint64,
+    centres_view: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    cutoff_radii: float,
+    reach: float,
+    iso: float,
+    width: int,
+    height: int,
+    focal: float,
+    t_front: wp.array(dtype=float),
+    steps: int,
+    max_step: float,
+    normals: wp.array(dtype=wp.vec3),
+):
+    """The field's normal -grad f / |grad f| where each pixel's ray enters its front sphere
+    (``t_front``, view depth; pixels without one are left alone), after ``steps`` Newton steps
+    t += (iso - f) / (df/dt) along the ray towards the iso-surface, each at most ``max_step``: a
+    sphere splat a little larger than the balls starts next to the blended surface, so one field
+    sample there already gives its orientation, which a sphere's own normal cannot."""
+    idx = wp.tid() + offset
+    t = t_front[idx]
+    if t <= 0.0 or t >= 1.0e29:
+        return
+    row = idx // width
+    col = idx - row * width
+    d = pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
+    g = field_at(grid, centres_view, radii, cutoff_radii, reach, d * t)
+    for _ in range(steps):
+        slope = g[1] * d[0] + g[2] * d[1] + g[3] * d[2]
+        if wp.abs(slope) > 1.0e-12:
+            t = t + wp.clamp((iso - g[0]) / slope, -max_step, max_step)
+            g = field_at(grid, centres_view, radii, cutoff_radii, reach, d * t)
+    n = wp.vec3(-g[1], -g[2], -g[3])
+    ln = wp.length(n)
+    if ln > 0.0:
+        normals[idx] = n / ln
+
+
+@wp.kernel
 def march_metaballs(
     offset: int,
     grid: wp.uint64,

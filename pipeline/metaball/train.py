@@ -55,14 +55,17 @@ def generator_args(m: MetaballConfig) -> dict:
     channels = len(input_names(m.input))
     if m.architecture == "unet":
         return {"in_channels": channels, "out_channels": 7, "base_channels": m.base_channels, "upsample": m.upsample}
-    return {"kind": "resnet", "in_channels": channels, "out_channels": 7, "base_channels": m.base_channels,
+    args = {"kind": "resnet", "in_channels": channels, "out_channels": 7, "base_channels": m.base_channels,
             "downsamples": 2, "res_blocks": m.res_blocks}
+    if m.residual and m.input != "circles":  # the encoded normal: input channels 1-3, target channels 4-6
+        args["residual_at"] = [1, 4]
+    return args
 
 
 def input_normals(kind: str) -> tuple[slice, ...]:
     """The encoded normal blocks of an input kind (the sphere input's front normal), which turn with
     the image."""
-    return (slice(1, 4),) if kind == "spheres" else ()
+    return (slice(1, 4),) if kind != "circles" else ()
 
 
 def loss_weights(m: MetaballConfig) -> torch.Tensor:
@@ -71,7 +74,7 @@ def loss_weights(m: MetaballConfig) -> torch.Tensor:
     depth code, which counts from the view's nearest ball, is not learnt from it: the method takes
     its depth from the sphere splat instead (``pipeline.metaball.inference``)."""
     w = torch.ones(7)
-    if m.input == "spheres":
+    if m.input != "circles":
         w[3] = 0.0
     return w[None, :, None, None]
 
@@ -314,7 +317,8 @@ def fit(folder: Path, m: MetaballConfig, seed: int, train_paths: list[Path], val
 
 def init_generator(generator: torch.nn.Module, m: MetaballConfig) -> None:
     """Load the generator weights ``m.init_from`` names into a new run's ``generator``; the checkpoint
-    must hold the same architecture and have been trained on the same input."""
+    must hold the same architecture and have been trained on the same input, or on the other sphere
+    input (same channels; only the normals' source differs)."""
     path = SHIPPED_WEIGHTS if m.init_from == "shipped" else Path(m.init_from)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -324,11 +328,11 @@ def init_generator(generator: torch.nn.Module, m: MetaballConfig) -> None:
         raise TrainingError(f"metaball.init_from: cannot read {path} ({exc})") from None
     want, got = generator_args(m), state.get("generator_args", {})
     trained_on = state.get("config", {}).get("input", "circles")
-    if got != want or trained_on != m.input:
+    if got != want or (trained_on != m.input and "circles" in (trained_on, m.input)):
         raise TrainingError(f"metaball.init_from: {path} holds a generator {got} trained on {trained_on}, but this "
                             f"config builds {want} for {m.input}")
     generator.load_state_dict(state["generator"])
-    log.info("metaball train: starting from the generator of %s", path)
+    log.info("metaball train: starting from the generator of %s (trained on the %s input)", path, trained_on)
 
 
 def load_generator(path: Path, device: str = "cpu") -> tuple[torch.nn.Module, dict]:

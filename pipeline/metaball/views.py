@@ -56,6 +56,8 @@ class WorkingView:
     params: MetaballParams
     scale: float           # working units per scene unit
     size: tuple[int, int] = (0, 0)  # the view's own image (height, width)
+    splat_radius: float = 1.0  # sphere inputs: the spheres' radius in minimal radii
+    field_steps: int | None = None  # sphere inputs: Newton steps of the field normals (None: the spheres')
 
     def circles(self, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The 4 x H x W circle input (``pipeline.metaball.circle_input``)."""
@@ -63,10 +65,12 @@ class WorkingView:
 
     def layers(self, launch: Launcher) -> dict:
         """The balls' sphere splat (``pipeline.metaball.sphere_layers``; depths in working units)."""
-        return sphere_layers(self.positions, self.radii, self.camera, self.params, launch)
+        return sphere_layers(self.positions, self.radii, self.camera, self.params, launch, self.splat_radius,
+                             self.field_steps)
 
     def inputs(self, kind: str, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
-        """The network input of ``kind``: 'circles' (the thesis') or 'spheres' (``sphere_input``)."""
+        """The network input of ``kind``: 'circles' (the thesis') or a sphere input ('field',
+        'spheres': ``sphere_input`` of ``layers``)."""
         if kind == "circles":
             return self.circles(launch, colours)
         return sphere_input(self.layers(launch))
@@ -95,7 +99,7 @@ class WorkingView:
 def network_input(inputs: np.ndarray, m: MetaballConfig) -> np.ndarray:
     """A view's input as the generator of ``m`` sees it: the sphere input without the layers behind
     when ``m.layers`` is off (the ablation), else unchanged."""
-    if m.input != "spheres" or m.layers:
+    if m.input == "circles" or m.layers:
         return inputs
     out = inputs.copy()
     out[5:] = 0.0
@@ -116,7 +120,8 @@ def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballC
     h, w = camera.height, camera.width
     s = pixel_scale(view, radii * scale, camera, m.iso_level, m.working_radius_px)
     origin = Camera(np.eye(4), camera.fov_y_deg, max(1, round(w * s)), max(1, round(h * s)))
-    return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale, (h, w))
+    return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale, (h, w), m.splat_radius,
+                       m.field_steps if m.input == "field" else None)
 
 
 def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: float,

@@ -40,13 +40,19 @@ class Generator(nn.Module):
     """Refines a screen-space normal map (plus optional depth features) into a mesh-like one."""
 
     def __init__(self, in_channels: int = 5, base_channels: int = 24, downsamples: int = 2, res_blocks: int = 4,
-                 residual: bool = False, out_channels: int = 3):
+                 residual: bool = False, out_channels: int = 3, residual_at: list[int] | None = None):
+        """``residual``: the output is the input's first three channels plus a learnt correction;
+        ``residual_at`` = [i, o]: only output channels o..o+2 are input channels i..i+2 plus a
+        correction, the others pass through tanh as without it. Either starts as that identity."""
         super().__init__()
         if residual and out_channels != 3:
             raise ValueError("a residual generator returns its input normal: out_channels must be 3")
         self.args = {"in_channels": in_channels, "base_channels": base_channels, "downsamples": downsamples,
                      "res_blocks": res_blocks, "residual": residual, "out_channels": out_channels}
+        if residual_at is not None:
+            self.args["residual_at"] = list(residual_at)
         self.residual = residual
+        self.residual_at = residual_at
         self.stride = 2**downsamples
         ch = [base_channels * 2**k for k in range(downsamples + 1)]
         self.stem = conv_bn(in_channels, ch[0])
@@ -57,7 +63,7 @@ class Generator(nn.Module):
             for k in reversed(range(downsamples))
         ])
         self.head = nn.Conv2d(ch[0], out_channels, 3, 1, 1)
-        if residual:  # starts as the identity of the input normal
+        if residual or residual_at is not None:  # starts as the identity of the input normal
             nn.init.zeros_(self.head.weight)
             nn.init.zeros_(self.head.bias)
 
@@ -85,6 +91,11 @@ class Generator(nn.Module):
             y = up(y) + skip
         if self.residual:
             return x[:, :3] + self.head(y)
+        if self.residual_at is not None:
+            i, o = self.residual_at
+            out = self.head(y)
+            t = torch.tanh(out)
+            return torch.cat([t[:, :o], x[:, i:i + 3] + out[:, o:o + 3], t[:, o + 3:]], dim=1)
         return torch.tanh(self.head(y))
 
 
