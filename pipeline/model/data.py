@@ -289,7 +289,7 @@ class CropDataset(torch.utils.data.Dataset[tuple[np.ndarray, np.ndarray]]):
     Sample ``(epoch, index)`` draws its frame and its crop from a generator seeded by (seed, epoch,
     index), so it is the same crop whichever DataLoader worker or training process reads it, and a
     resumed run reads what a straight one would. Each worker keeps its last ``cached_frames`` decoded
-    frames (about 33 MiB each at 1024 x 1024), so memory no longer grows with the dataset."""
+    frames (about 33 MiB each at 1024 x 1024), so memory does not grow with the dataset."""
 
     def __init__(self, paths: list[Path], crop: int, seed: int, spec: InputSpec, cached_frames: int = 4,
                  flip: bool = True, rotate: bool = False):

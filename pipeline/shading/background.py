@@ -84,8 +84,8 @@ class BackgroundRenderer:
         floor_hi = hi + np.array([1.5, 0, 1.5]) * span
         tile = span / 8.0
         # one pyrender mesh of every surface, drawn in this order: the scene keeps its meshes in a
-        # set, whose order changed from process to process, and the pixels on a seam where two
-        # meshes meet at one depth went to whichever was drawn first, so frames were not reproducible
+        # set, whose order differs from process to process, and a seam's pixels where two meshes
+        # meet at one depth go to whichever is drawn first
         primitives = list(pyrender.Mesh.from_trimesh(_checker_floor(floor_lo, floor_hi, tile, lo[1] - 1e-3),
                                                      smooth=False).primitives)
         wall = 0.02 * span

@@ -646,62 +646,62 @@ def correction_finish_walls(start: int, end: int, x_pred: wp.array(dtype=wp.vec3
 # phase's blocks taken by whichever thread comes free. Pass kinds, in step order: the iterations'
 # density (0) and correction (1) passes, then vorticity (2) and viscosity (3).
 # The gang takes its arguments as two structs; the per-particle kernels above keep plain arguments:
-# a kernel copies its struct arguments for every index it runs (1.2 KB here), which made the
-# finish kernels 2-7x slower in a trial (the vorticity finish 0.19 -> 1.31 ms on one thread), while
-# the gang copies them once per block.
+# a kernel copies its struct arguments for every index it runs (1.2 KB here), which makes the
+# finish kernels 2-7x slower, while the gang copies them once per block.
 
 
 @wp.struct
 class PassConstants:
-    """The scalars of a step's pair passes (one per solver)."""
+    """The scalars of a step's pair passes (one per solver): the one description of what the passes
+    and their finish kernels take, which ``pairs_block`` and ``finish_block`` unpack."""
 
-    iterations: int
-    h: float
-    poly6_coef: float
-    spiky_coef: float
-    mass: float
-    vol: float
-    corr_k: float
-    inv_corr_w_dq: float
-    corr_n: int
-    self_density: float
-    rest_density: float
-    relaxation: float
-    lo: wp.vec3
-    hi: wp.vec3
-    radius: float
-    inv_dt: float
-    vorticity_eps: float
-    xsph_c: float
-    dt: float
+    iterations: int  # density/correction iterations of a step
+    h: float  # kernel support radius
+    poly6_coef: float  # poly6 kernel's coefficient 315 / (64 pi h^9)
+    spiky_coef: float  # spiky gradient's coefficient -45 / (pi h^6)
+    mass: float  # particle mass
+    vol: float  # particle volume, mass / rest density
+    corr_k: float  # artificial pressure strength k (tensile instability)
+    inv_corr_w_dq: float  # 1 / W(dq) of the artificial pressure
+    corr_n: int  # artificial pressure exponent n
+    self_density: float  # a particle's own poly6 contribution to its density
+    rest_density: float  # rest density rho_0
+    relaxation: float  # constraint force mixing epsilon in the lambda denominator
+    lo: wp.vec3  # domain's lower corner (the walls)
+    hi: wp.vec3  # domain's upper corner
+    radius: float  # particle radius, kept off walls and obstacles
+    inv_dt: float  # 1 / time step (velocity from positions)
+    vorticity_eps: float  # vorticity confinement strength
+    xsph_c: float  # XSPH viscosity c
+    dt: float  # time step
 
 
 @wp.struct
 class PassArrays:
     """The arrays of a step's pair passes (the solver keeps one per arrangement of its buffers)."""
 
-    x_pred: wp.array(dtype=wp.vec3)
-    particle_x: wp.array(dtype=wp.vec3)
-    v_tmp: wp.array(dtype=wp.vec3)
-    particle_v: wp.array(dtype=wp.vec3)
-    neighbour_start: wp.array(dtype=int)
+    x_pred: wp.array(dtype=wp.vec3)  # predicted positions, corrected by the iterations
+    particle_x: wp.array(dtype=wp.vec3)  # positions at the step's start
+    v_tmp: wp.array(dtype=wp.vec3)  # velocity from the corrected positions, before viscosity
+    particle_v: wp.array(dtype=wp.vec3)  # the step's output velocity
+    neighbour_start: wp.array(dtype=int)  # a particle's half list: neighbour_index[start:end]
     neighbour_end: wp.array(dtype=int)
-    neighbour_index: wp.array(dtype=int)
-    pair: wp.array(dtype=wp.vec4)
-    acc4: wp.array(dtype=wp.vec4)
-    acc1: wp.array(dtype=float)
-    acc3a: wp.array(dtype=wp.vec3)
-    acc3b: wp.array(dtype=wp.vec3)
-    particle_rho: wp.array(dtype=float)
-    particle_lambda: wp.array(dtype=float)
-    wall_grad: wp.array(dtype=wp.vec3)
-    particle_omega: wp.array(dtype=wp.vec3)
-    omega_length: wp.array(dtype=float)
-    particle_vol: wp.array(dtype=float)
-    wall: wp.array(dtype=wp.vec2)
-    spheres: wp.array(dtype=wp.vec4)
-    box_lo: wp.array(dtype=wp.vec3)
-    box_hi: wp.array(dtype=wp.vec3)
+    neighbour_index: wp.array(dtype=int)  # the half lists, padded by 8 for the vector loops
+    pair: wp.array(dtype=wp.vec4)  # per-pair cache (gradient, kernel value) beside neighbour_index
+    acc4: wp.array(dtype=wp.vec4)  # density pass sums: gradient sum and density
+    acc1: wp.array(dtype=float)  # density pass sums: squared gradients
+    acc3a: wp.array(dtype=wp.vec3)  # sums: position correction, or the viscosity pass's eta
+    acc3b: wp.array(dtype=wp.vec3)  # sums: the viscosity pass's XSPH term
+    particle_rho: wp.array(dtype=float)  # densities
+    particle_lambda: wp.array(dtype=float)  # constraint multipliers
+    wall_grad: wp.array(dtype=wp.vec3)  # the walls' and obstacles' density gradient per particle
+    particle_omega: wp.array(dtype=wp.vec3)  # vorticity
+    omega_length: wp.array(dtype=float)  # |vorticity|
+    particle_vol: wp.array(dtype=float)  # volume per particle for the viscosity sums
+    wall: wp.array(dtype=wp.vec2)  # the wall density table (value, gradient) by distance
+    spheres: wp.array(dtype=wp.vec4)  # sphere obstacles (centre, radius)
+    box_lo: wp.array(dtype=wp.vec3)  # box obstacles' lower corners
+    box_hi: wp.array(dtype=wp.vec3)  # box obstacles' upper corners
 
 
 @wp.func

@@ -60,8 +60,7 @@ def full_neighbourhood_variance(step: float, support: float) -> float:
 
 
 # Hash-grid cells per covariance support radius: a query then scans 5^3 half-size cells, 0.58x the
-# volume of 27 full-size ones (the anisotropy of 49k particles: 243 ms with 1, 194 with 2, 213 with
-# 3; then 166 with the square root taken only for neighbours inside the support)
+# volume of 27 full-size ones; 2 is the fastest of 1, 2 and 3 for the anisotropy of 49k particles
 ANISOTROPY_CELLS_PER_SUPPORT = 2
 
 
