@@ -549,7 +549,7 @@ class MetaballConfig:
     splat_radius: float = Field(1.5, gt=0.0)
     """Radius of the splatted spheres, in minimal radii (an isolated ball's surface): the blend
     swells the surface beyond the balls, so a larger sphere starts nearer to it."""
-    field_steps: int = Field(1, ge=0)
+    field_steps: int = Field(2, ge=0)
     """With ``input: field``: Newton steps along each ray from the front sphere towards the
     iso-surface before the field's normal is taken (each costs one more field sample a pixel)."""
     layers: bool = True

@@ -163,6 +163,7 @@ def test_evaluate_smoke(tmp_path):
         assert 0 <= row["mean_deg"] <= 180 and 0 <= row["iou"] <= 1 and row["ms_per_frame"] > 0
     own = metrics["overall"]["metaball"]
     assert 0 <= own["own_mean_deg"] <= 180 and 0 <= own["own_iou"] <= 1
+    assert 0 <= own["surface_mean_deg"] <= 180, "the ray-marched surface is scored against the mesh too"
     assert (entry / "methods.png").exists() and (entry / "examples.png").exists()
 
 

@@ -60,7 +60,8 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     """Per-method metrics of one held-out sequence, plus per-frame errors and examples for the figures.
 
     The ``metaball`` method is also scored against its own ray-marched metaball surface on every
-    ``metaball.target_stride``-th evaluated frame (``own_*`` figures)."""
+    ``metaball.target_stride``-th evaluated frame (``own_*`` figures), and that surface against the
+    mesh (``surface_*``: what a network that reproduced it exactly would score)."""
     if "metaball" in methods and metaball is None:
         raise ValueError("the metaball method needs a metaball generator")
     rp = config.render
@@ -71,7 +72,7 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     background = BackgroundRenderer(Surroundings.of_scene(seq.scene), rp, width, height)
     scores = {k: {m: [] for m in methods} for k in ("errors", "on_mask", "missed", "per_frame", "iou", "psnr",
                                                      "ssim")}
-    own: dict[str, list] = {"errors": [], "iou": []}
+    own: dict[str, list] = {"errors": [], "iou": [], "surface": []}
     examples, radii = [], []
     try:
         for k, r in enumerate(tqdm(records, desc=f"evaluate {seq.scene.name}/{seq.camera}", unit="frame",
@@ -93,6 +94,7 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
                     on = surface["mask"] > 0
                     own["errors"].append(angular_errors(g["normals"], surface["normals"], (g["mask"] > 0) & on))
                     own["iou"].append(iou(g["mask"] > 0, on))
+                    own["surface"].append(errors_over_reference(surface["normals"], target, on, t_mask)[0])
             shaded = {}
             for m, (n, mask, depth) in maps.items():
                 src = {"normals": n.astype(np.float32), "depth": np.where(mask, depth, 0).astype(np.float32),
@@ -122,8 +124,9 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     result = {m: _summary(m, scores, timings) for m in methods}
     if "metaball" in methods:
         errors = summarize_angles(np.concatenate(own["errors"]) if own["errors"] else np.zeros(0))
+        surface = summarize_angles(np.concatenate(own["surface"]) if own["surface"] else np.zeros(0))
         result["metaball"].update({f"own_{k}": v for k, v in errors.items()}, own_iou=float(np.mean(own["iou"])),
-                                  own_frames=len(own["iou"]))
+                                  own_frames=len(own["iou"]), **{f"surface_{k}": v for k, v in surface.items()})
     result["mesh"] = {"ms_per_frame": timings["mesh"]}
     return {"scene": seq.scene.name, "camera": seq.camera, "frames": len(records), "size": [width, height],
             "radius_px": float(np.median(radii)) if radii else 0.0, "methods": result, "examples": examples}
@@ -191,5 +194,10 @@ def aggregate(results: list[dict], methods) -> dict:
                                                              zip(rows, w / max(w.sum(), 1), strict=True)]))
         table["metaball"]["own_median_deg"] = float(np.nanmedian([row["own_median_deg"] for row in rows]))
         table["metaball"]["own_iou"] = float(np.nanmean([row["own_iou"] for row in rows]))
+        if all("surface_pixels" in row for row in rows):
+            w = np.array([row["surface_pixels"] for row in rows], float)
+            table["metaball"]["surface_mean_deg"] = float(np.nansum([row["surface_mean_deg"] * wi for row, wi in
+                                                                     zip(rows, w / max(w.sum(), 1), strict=True)]))
+            table["metaball"]["surface_median_deg"] = float(np.nanmedian([row["surface_median_deg"] for row in rows]))
     table["mesh"] = {"ms_per_frame": float(np.nanmean([r["methods"]["mesh"]["ms_per_frame"] for r in results]))}
     return table
