@@ -235,7 +235,7 @@ def test_the_shipped_metaball_weights_load_with_their_card():
     assert SHIPPED_WEIGHTS.stat().st_size < 20 * 2**20
     assert card["generator_args"]["base_channels"] == net.config.base_channels
     assert card["validation"]["mean_deg"] < 20 and card["data"]["training_views"] > 0
-    assert card["generator_args"]["kind"] == "resnet" and net.config.input == "spheres"
+    assert card["generator_args"]["kind"] == "resnet" and net.config.input == "field"
 
 
 def test_metaball_stages_build_train_and_ship(tmp_path):
@@ -269,3 +269,26 @@ def test_missing_or_damaged_metaball_weights_are_clear_errors(tmp_path):
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(RuntimeError, match="cannot read metaball weights"):
         MetaballNet(bad)
+
+
+def test_the_residual_generator_starts_as_its_field_input():
+    """With ``residual_at`` the untrained generator returns the input's normal channels as its normal
+    outputs (on and off the splat, where the input's -1 is the empty target's), and a trained step
+    changes them; the other outputs go through tanh as without it."""
+    from pipeline.metaball.train import build_generator, generator_args
+
+    m = MetaballConfig(base_channels=4)
+    args = generator_args(m)
+    assert args["residual_at"] == [1, 4]
+    assert "residual_at" not in generator_args(MetaballConfig(base_channels=4, input="circles"))
+    g = build_generator(args).eval()
+    x = torch.rand(1, 7, 16, 16) * 2 - 1
+    y = g(x)
+    assert y.shape == (1, 7, 16, 16)
+    torch.testing.assert_close(y[:, 4:7], x[:, 1:4])
+    torch.testing.assert_close(y[:, :4], torch.zeros(1, 4, 16, 16))
+    g.train()
+    loss = (g(x)[:, 4:7] - 0.5).abs().mean()
+    loss.backward()
+    torch.optim.SGD(g.parameters(), 0.1).step()
+    assert not torch.allclose(g.eval()(x)[:, 4:7], x[:, 1:4])
