@@ -555,7 +555,7 @@ class MetaballConfig:
     layers: bool = True
     """With a sphere input: the channels of what lies behind the front splat (``behind``,
     ``thickness``); False zeroes them (the ablation of the depth separation)."""
-    working_radius_px: float = Field(2.0, ge=0.0)
+    working_radius_px: float = Field(1.5, ge=0.0)
     """Views are drawn at the image scale where the median ball's projected radius is within half an
     octave below this (px), and the maps resampled back (0: the view's own size, the thesis')."""
     architecture: Literal["resnet", "unet"] = "resnet"
