@@ -69,6 +69,10 @@ def random_cameras(scene: str, frame: int, x: np.ndarray, radius: float, p: Data
             for k in range(p.random_views)]
 
 
+class _Abandoned(Exception):
+    """A frame left at a step boundary because the build is ending (Ctrl-C or another frame's error)."""
+
+
 class _Worker(threading.local):
     """Per-thread kernel runners (frames are processed in parallel)."""
 
@@ -97,6 +101,7 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
     init_warp((screen_kernels, surface_kernels), device)  # loaded once here, not by the workers at once
     local = _Worker(device, 1 if workers > 1 else 0)
     timings, lock = Timings(), threading.Lock()
+    stop = threading.Event()  # set on Ctrl-C or a failed frame: the frames in flight end at their next step
     # One worker (a GPU): the views' EXRs are compressed on a background thread while the device makes
     # the next views. Several CPU workers write their own: they keep the cores busy already.
     writer = BackgroundWriter() if workers == 1 else None
@@ -106,6 +111,10 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
         with t("write"):
             write_exr(target, channels, attributes=attributes)
 
+    def check() -> None:
+        if stop.is_set():
+            raise _Abandoned  # this frame's views written so far stay; a resume builds the rest
+
     def build(index: int, frame: int) -> None:
         targets = {c: folder / c / frame_name(frame, "exr") for c in CAMERAS}
         randoms = [folder / random_view_name(frame, k) for k in range(p.random_views)]
@@ -113,13 +122,16 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
             return
         t = Timings()
         x = load(frame)
+        check()
         with t("anisotropy"):
             kernels = anisotropic_kernels(x, radius, p, local.launch, device)
             ellipsoids = particle_ellipsoids(x, radius, p, local.launch, device, kernels)
+        check()
         mesh = None
         if p.target == "mesh" or p.keep_meshes:
             mesh = reconstruct(x, radius, p, local.launch, device, kernels)
             t.merge(mesh.timings, skip=("anisotropy",))
+            check()
         if p.keep_meshes:
             with atomic_path(folder / "meshes" / frame_name(frame, "ply")) as tmp:
                 mesh.to_trimesh().export(str(tmp), file_type="ply")
@@ -131,6 +143,7 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
         # space there (on the host: 4 ms a view for 49k particles, and an upload each)
         x_views = wp.array(np.asarray(x, np.float32), dtype=wp.vec3, device=device) if device != "cpu" else x
         for cam, target, every_filter in views:
+            check()
             if target.exists():
                 continue
             # random views are for training: the ellipsoid splat and its bilateral filter only
@@ -158,7 +171,8 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
             for fut in [pool.submit(build, i, f) for i, f in todo]:
                 fut.result()
                 bar.update()
-    except BaseException:  # a failed frame or Ctrl-C: the frames not begun are not waited for
+    except BaseException:  # a failed frame or Ctrl-C: frames not begun are dropped, those in flight stop
+        stop.set()
         pool.shutdown(wait=True, cancel_futures=True)
         if writer is not None:
             writer.cancel()

@@ -142,3 +142,42 @@ def test_one_worker_writing_in_the_background_gives_the_files_of_two(tmp_path):
         files[workers] = {p.relative_to(entry): p.read_bytes() for p in sorted(entry.rglob("*.exr"))}
     assert len(files[1]) == 6  # 2 frames x (2 camera paths + 1 random view)
     assert files[1] == files[2]
+
+
+def test_a_failed_frame_stops_the_frames_in_flight_at_their_next_step(tmp_path, monkeypatch):
+    """When one frame fails (or Ctrl-C arrives), the frame another worker is building stops before
+    its next view instead of writing all of them, so the stage ends within a view's time; what it
+    wrote stays, and a resume builds the rest."""
+    import time
+
+    import pipeline.dataset as dataset
+    from pipeline.config import DatasetConfig
+    from pipeline.config_files import load
+
+    scene = load(ROOT / "configs" / "default.yaml").scene("dam_break")
+    g = np.arange(8) * 0.06
+    block = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + np.array([0.4, 0.1, 0.2])
+    inputs = dataset.screen_space_inputs
+
+    def slow_inputs(*args, **kwargs):
+        time.sleep(1.0)
+        return inputs(*args, **kwargs)
+
+    def load_frame(frame: int) -> np.ndarray:
+        if frame == 1:
+            time.sleep(0.3)  # the other worker is inside its first view by now
+            raise RuntimeError("frame 1 is damaged")
+        return block
+
+    monkeypatch.setattr(dataset, "screen_space_inputs", slow_inputs)
+    p = DatasetConfig(width=32, height=32, workers=2, random_views=2)
+    start = time.monotonic()
+    with pytest.raises(RuntimeError, match="frame 1 is damaged"):
+        dataset.build_dataset(tmp_path, scene, p, [1, 2], load_frame, 0.03, "cpu")
+    took = time.monotonic() - start
+    written = sorted(tmp_path.rglob("*.exr"))
+    assert len(written) <= 1, "frame 2 went on through its views after frame 1 failed"
+    assert took < 3.5, f"{took:.1f} s: one view takes 1 s, all four of frame 2's 4 s"
+    monkeypatch.setattr(dataset, "screen_space_inputs", inputs)
+    dataset.build_dataset(tmp_path, scene, p, [2], load_frame, 0.03, "cpu")
+    assert len(sorted(tmp_path.rglob("*.exr"))) == 4  # two cameras and two random views
