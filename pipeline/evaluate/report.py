@@ -71,10 +71,9 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
                   "|---|---|---|---|---|---|---|"]
         for s in sizes:
             t = by_size[s][1]["metaball"]
-            floor = (f"{t['surface_mean_deg']:.2f} / {t['surface_median_deg']:.2f}" if "surface_mean_deg" in t
-                     else "")
             lines.append(f"| {s} | {t['own_mean_deg']:.2f} | {t['own_median_deg']:.2f} | {t['own_iou']:.3f} | "
-                         f"{t['mean_deg']:.2f} | {t['iou']:.3f} | {floor} |")
+                         f"{t['mean_deg']:.2f} | {t['iou']:.3f} | {t['surface_mean_deg']:.2f} / "
+                         f"{t['surface_median_deg']:.2f} |")
         lines.append("")
     for i, s in enumerate(sizes):
         results, table = by_size[s]

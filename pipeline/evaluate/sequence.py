@@ -194,10 +194,9 @@ def aggregate(results: list[dict], methods) -> dict:
                                                              zip(rows, w / max(w.sum(), 1), strict=True)]))
         table["metaball"]["own_median_deg"] = float(np.nanmedian([row["own_median_deg"] for row in rows]))
         table["metaball"]["own_iou"] = float(np.nanmean([row["own_iou"] for row in rows]))
-        if all("surface_pixels" in row for row in rows):
-            w = np.array([row["surface_pixels"] for row in rows], float)
-            table["metaball"]["surface_mean_deg"] = float(np.nansum([row["surface_mean_deg"] * wi for row, wi in
-                                                                     zip(rows, w / max(w.sum(), 1), strict=True)]))
-            table["metaball"]["surface_median_deg"] = float(np.nanmedian([row["surface_median_deg"] for row in rows]))
+        w = np.array([row["surface_pixels"] for row in rows], float)
+        table["metaball"]["surface_mean_deg"] = float(np.nansum([row["surface_mean_deg"] * wi for row, wi in
+                                                                 zip(rows, w / max(w.sum(), 1), strict=True)]))
+        table["metaball"]["surface_median_deg"] = float(np.nanmedian([row["surface_median_deg"] for row in rows]))
     table["mesh"] = {"ms_per_frame": float(np.nanmean([r["methods"]["mesh"]["ms_per_frame"] for r in results]))}
     return table

@@ -248,7 +248,7 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     launch.tasks(K.splat_behind_and_normals, len(view),
                  [[*args, r0, r1, r, t_in, t_behind, normals] for r0, r1 in bands])
     if field_steps is not None:
-        field_normals(view, rad, camera, p, launch, t_in, field_steps, normals)
+        field_normals(args[0], view, rad, camera, p, launch, t_in, field_steps, normals)
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
     return {"front": np.where(covered, front, 0.0).astype(np.float32),
@@ -258,16 +258,16 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
             "r_px": float(np.median(camera.focal_px * r_min / -view[:, 2]))}
 
 
-def field_normals(view: np.ndarray, radii: np.ndarray, camera: Camera, params: MetaballParams, launch: Launcher,
-                  t_front: wp.array, steps: int, normals: wp.array) -> None:
+def field_normals(centres: wp.array, view: np.ndarray, radii: np.ndarray, camera: Camera, params: MetaballParams,
+                  launch: Launcher, t_front: wp.array, steps: int, normals: wp.array) -> None:
     """Overwrite ``normals`` (H x W, view space) with the metaball field's where the rays enter their
     front sphere at ``t_front`` (``kernels.field_normals``, Newton steps of at most a ball radius) for
-    balls at view-space centres ``view`` with ``radii``. Needs the field's cut-off (a hash grid)."""
+    balls at view-space centres ``view`` (on the device: ``centres``) with ``radii``. Needs the
+    field's cut-off (a hash grid)."""
     k = params.kernel_radius_radii
     if k <= 0:
         raise ValueError("field normals need a kernel radius (metaball.kernel_radius_radii > 0)")
     device = launch.device
-    centres = wp.array(view.astype(np.float32), dtype=wp.vec3, device=device)
     reach = float(k * radii.max())
     grid = hash_grid(centres, view, reach, device)
     launch(K.field_normals, camera.width * camera.height,
