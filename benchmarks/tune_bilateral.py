@@ -6,9 +6,11 @@ particle radii (``dataset.bilateral_range_radii``): both scale-free, so one sett
 every resolution. This prints, for each pair, the mean and median angular error against the
 ray-cast mesh of the sphere and the ellipsoid splat at each size, pooled over a few frames of the
 scenes' two cameras, with the fixed-size Gaussian beside it. Training scenes only: the held-out
-scenes do not choose the parameters.
+scenes do not choose the parameters. ``--taps`` also sweeps ``dataset.bilateral_max_taps`` (0:
+every pixel of the radius), which only matters where the radius is wider than it: large sizes.
 
     .venv/bin/python benchmarks/tune_bilateral.py [--scenes dam_break pouring] [--sizes 256 1024]
+                                                  [--sigmas 1.5] [--ranges 10] [--taps 0 16 8]
 """
 
 from __future__ import annotations
@@ -42,12 +44,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3, help="frames per scene")
     parser.add_argument("--sigmas", type=float, nargs="+", default=[0.75, 1.0, 1.5, 2.0])
     parser.add_argument("--ranges", type=float, nargs="+", default=[1.0, 2.0, 3.0, 6.0])
+    parser.add_argument("--taps", type=int, nargs="+", help="max taps a side (default: the config's)")
     args = parser.parse_args()
     wp.config.quiet = True
     run = make_run(StageOptions(config=args.config))
     base = run.config.dataset
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
-    pairs = [(s, g) for s in args.sigmas for g in args.ranges]
+    taps = args.taps or [base.bilateral_max_taps]
+    settings = [(s, g, t) for s in args.sigmas for g in args.ranges for t in taps]
     errors: dict = {}
     for name in args.scenes:
         scene = run.loaded.scene(name)
@@ -73,18 +77,19 @@ def main() -> None:
                         if ell is None:
                             errors.setdefault((size, splat, "gaussian"), []).append(
                                 angular_errors(stack(ch, "gaussian.N."), target, fluid & t_mask))
-                        for s, g in pairs:
+                        for s, g, t in settings:
                             p = dataclasses.replace(base, bilateral_sigma_px_scale=s, bilateral_range_radii=g,
-                                                    width=size, height=size)
+                                                    bilateral_max_taps=t, width=size, height=size)
                             n = ss.normals(ss.bilateral(raw, cam, r, p), cam)
-                            errors.setdefault((size, splat, (s, g)), []).append(angular_errors(n, target,
-                                                                                              fluid & t_mask))
+                            errors.setdefault((size, splat, (s, g, t)), []).append(angular_errors(n, target,
+                                                                                                 fluid & t_mask))
         print(f"  {name}: {len(picks)} frames x 2 cameras", flush=True)
-    print(f"\nbilateral sigma (x projected radius) / range (radii): mean / median angular error (deg) vs the mesh; "
-          f"current {base.bilateral_sigma_px_scale} / {base.bilateral_range_radii}")
+    print(f"\nbilateral sigma (x projected radius) / range (radii) / max taps: mean / median angular error (deg) "
+          f"vs the mesh; current {base.bilateral_sigma_px_scale} / {base.bilateral_range_radii} / "
+          f"{base.bilateral_max_taps}")
     head = "".join(f" {f'{z} {sp[:4]}':>15s}" for z in args.sizes for sp in ("sphere", "ellipsoid"))
     print(f"{'setting':>14s}{head} {'avg mean':>9s}")
-    rows = [("gaussian", "gaussian")] + [(f"{s:g} / {g:g}", (s, g)) for s, g in pairs]
+    rows = [("gaussian", "gaussian")] + [(f"{s:g} / {g:g} / {t}", (s, g, t)) for s, g, t in settings]
     for label, key in rows:
         cells, means = "", []
         for z in args.sizes:

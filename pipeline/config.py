@@ -256,6 +256,10 @@ class DatasetConfig:
     bilateral_max_radius_px: int = Field(100, ge=1)
     """Cap on the bilateral kernel radius (px; the separable passes cost linear in it, and a cap
     below twice the spatial sigma would make the filter depend on the resolution)."""
+    bilateral_max_taps: int = Field(16, ge=0)
+    """'fast' mode: most taps on each side of a bilateral pass; a wider kernel's taps each average
+    the fluid pixels of their stretch, so the cost stops growing with the projected particle size
+    (0: one tap per pixel of the radius)."""
     gaussian_sigma_px: float = Field(3.0, gt=0.0)
     """Sigma of the naive fixed-size Gaussian depth blur, the weakest baseline (px)."""
     nrf_delta_radii: float = Field(10.5, gt=0.0)

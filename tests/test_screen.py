@@ -140,6 +140,25 @@ def test_fast_narrow_range_with_enough_taps_is_the_exact_filter(ss):
     assert np.abs(strided - exact)[fluid].mean() < 0.05 * R
 
 
+def test_wide_bilateral_taps_average_their_stretch_and_follow_the_full_filter(ss):
+    """Past ``bilateral_max_taps`` a pass's taps stand for stretches of pixels: the depth moves
+    (so the stride is applied) but its normals stay within a degree of reading every pixel, where
+    the unfiltered splat is 18 degrees away; with taps enough for the radius it is the full filter."""
+    from scipy.ndimage import binary_erosion
+
+    from pipeline.metrics import angular_errors
+
+    cam, sp = _bumpy_sheet_depth(ss)  # projected radius 4.6 px: a kernel radius of 14 px
+    inner = binary_erosion(sp.mask > 0, iterations=8, border_value=0)
+    full = ss.bilateral(sp.depth, cam, R, DatasetConfig(bilateral_max_taps=0))
+    np.testing.assert_array_equal(ss.bilateral(sp.depth, cam, R, DatasetConfig(bilateral_max_taps=16)), full)
+    strided = ss.bilateral(sp.depth, cam, R, DatasetConfig(bilateral_max_taps=4))
+    assert np.abs(strided - full)[inner].max() > 1e-3 * R
+    reference = ss.normals(full, cam)
+    assert angular_errors(ss.normals(strided, cam), reference, inner).mean() < 1.0
+    assert angular_errors(ss.normals(sp.depth, cam), reference, inner).mean() > 10.0
+
+
 def test_separable_bilateral_is_the_2d_filter_without_range_weights(ss):
     """With an enormous range sigma the bilateral filter is a Gaussian of the fluid pixels; on a
     fully covered image away from the borders the separable passes equal the 2D window (a Gaussian
