@@ -58,8 +58,8 @@ PASSES = {"Combined": "RGBA", "Depth": "Z", "Fluid": "RGBA", "Thickness": "X", "
 """The passes of a rendered frame and their channels, in file order (docs/compositing.md)."""
 
 HALF_PASSES = ("Combined", "Fluid", "Mask")
-"""Passes stored as half floats unless ``render.exr_half`` is 'none': colour, and the 0/1 mask (exact
-in half)."""
+"""Passes stored as half floats under ``render.exr_half: colour``: colour, and the 0/1 mask (exact in
+half)."""
 
 
 def channel_names(passes: dict[str, str] = PASSES) -> list[str]:
@@ -96,9 +96,12 @@ class RenderedFrame:
 
     @staticmethod
     def half_channels(which: str) -> tuple[str, ...]:
-        """Channel names stored as half floats for ``render.exr_half`` ('none', 'colour', 'all')."""
+        """Channel names stored as half floats for ``render.exr_half`` ('none', 'colour',
+        'all_but_depth', 'all')."""
         if which == "all":
             return tuple(channel_names())
+        if which == "all_but_depth":
+            return tuple(channel_names({k: v for k, v in PASSES.items() if k != "Depth"}))
         if which == "colour":
             return tuple(channel_names({k: PASSES[k] for k in HALF_PASSES}))
         return ()

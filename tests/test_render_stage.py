@@ -85,7 +85,7 @@ def _render_single_method(tmp_path, method: str):
     fluid = ch["ViewLayer.Fluid.A"] > 0
     assert (ch["ViewLayer.Depth.Z"][fluid] > 0).all()
     n = stack(ch, "ViewLayer.ViewNormal.")[fluid]
-    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1, atol=5e-4)  # stored as half: within 4.1e-4
     return entry, fluid
 
 

@@ -181,9 +181,9 @@ class ScreenSpace:
     def _gaussian(self, depth: wp.array, w: int, h: int, sigma_px: float) -> wp.array:
         a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
         args = [1.0, 0.0, 0.0, 0.0, max(w, h), sigma_px, 0]  # a fixed sigma, no range term, every pixel
-        unused = self._buffer("no_sums", 1, wp.float64), self._buffer("no_counts", 1, wp.int32)
-        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, *unused, a])
-        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, *unused, b])
+        unused = self._buffer("no_sums", 1, wp.vec3d)
+        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, unused, a])
+        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, unused, b])
         return b
 
     def _bilateral(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
@@ -194,11 +194,11 @@ class ScreenSpace:
             self.launch(K.bilateral_filter, w * h, [depth, w, h, *args, out])
             return out
         a = self._buffer("pass", w * h)
-        sums, counts = self._buffer("line_sums", w * h, wp.float64), self._buffer("line_counts", w * h, wp.int32)
+        sums = self._buffer("line_sums", w * h, wp.vec3d)
         for axis, src, dst in ((0, depth, a), (1, a, out)):
             if p.bilateral_max_taps:
-                self.launch(K.line_prefix, h if axis == 0 else w, [src, w, h, axis, sums, counts])
-            self.launch(K.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, counts, dst])
+                self.launch(K.line_prefix, h if axis == 0 else w, [src, w, h, axis, sums])
+            self.launch(K.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
         return out
 
     def _narrow_range(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:

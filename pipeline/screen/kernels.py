@@ -263,12 +263,11 @@ def line_prefix(
     width: int,
     height: int,
     axis: int,
-    sums: wp.array(dtype=wp.float64),
-    counts: wp.array(dtype=wp.int32),
+    sums: wp.array(dtype=wp.vec3d),
 ):
-    """Running sums of the fluid pixels' depths and their counts along one row (axis 0) or column
-    (axis 1) per thread, for the box averages of ``bilateral_pass``'s wide taps. float64: a float32
-    sum over a 4K row loses the millimetres two sums are subtracted for."""
+    """Running (count, sum of depths, sum of squared depths) of the fluid pixels along one row
+    (axis 0) or column (axis 1) per thread, for the stretches of ``bilateral_pass``'s wide taps.
+    float64: a float32 sum over a 4K row loses the millimetres two sums are subtracted for."""
     line = wp.tid() + offset
     start = line * width
     step = 1
@@ -277,33 +276,46 @@ def line_prefix(
         start = line
         step = width
         n = height
-    s = wp.float64(0.0)
-    c = int(0)
+    acc = wp.vec3d(0.0, 0.0, 0.0)
     for i in range(n):
         idx = start + i * step
-        d = depth_in[idx]
-        if d > 0.0:
-            s += wp.float64(d)
-            c += 1
-        sums[idx] = s
-        counts[idx] = c
+        d = wp.float64(depth_in[idx])
+        if d > wp.float64(0.0):
+            acc += wp.vec3d(wp.float64(1.0), d, d * d)
+        sums[idx] = acc
 
 
 @wp.func
-def box_tap(sums: wp.array(dtype=wp.float64), counts: wp.array(dtype=wp.int32), first: int, last: int,
-            step: int, line_start: int) -> wp.vec2:
-    """(mean depth, count) of the fluid pixels from line position ``first`` to ``last`` inclusive,
-    from the running sums of their line."""
-    hi = line_start + last * step
-    s = sums[hi]
-    c = counts[hi]
+def stretch_tap(depth_in: wp.array(dtype=float), sums: wp.array(dtype=wp.vec3d), first: int, last: int,
+                step: int, line_start: int, pos: int, d0: float, inv_s: float, inv_r: float,
+                range_sigma: float) -> wp.vec2:
+    """(sum of weight x depth, sum of weights) of the fluid pixels from line position ``first`` to
+    ``last``: one tap at the stretch's mean depth and centre, weighted by its pixel count, where its
+    depths spread less than a quarter of the range sigma; where they spread more (it straddles a
+    depth edge, which one mean would blur across) every pixel on its own."""
+    hi = sums[line_start + last * step]
     if first > 0:
-        lo = line_start + (first - 1) * step
-        s -= sums[lo]
-        c -= counts[lo]
-    if c == 0:
+        hi -= sums[line_start + (first - 1) * step]
+    count = float(hi[0])
+    if count == 0.0:
         return wp.vec2(0.0, 0.0)
-    return wp.vec2(float(s / wp.float64(c)), float(c))
+    inv = wp.float64(1.0) / hi[0]
+    mean = hi[1] * inv
+    spread = float(hi[2] * inv - mean * mean)
+    centre = 0.5 * float(first + last) - float(pos)
+    if spread <= 0.0625 * range_sigma * range_sigma:
+        dz = float(mean) - d0
+        w = count * wp.exp(-centre * centre * inv_s - dz * dz * inv_r)
+        return wp.vec2(w * float(mean), w)
+    out = wp.vec2(0.0, 0.0)
+    for i in range(first, last + 1):
+        d = depth_in[line_start + i * step]
+        if d > 0.0:
+            k = float(i - pos)
+            dz = d - d0
+            w = wp.exp(-k * k * inv_s - dz * dz * inv_r)
+            out += wp.vec2(w * d, w)
+    return out
 
 
 @wp.kernel
@@ -320,8 +332,7 @@ def bilateral_pass(
     max_radius: int,
     fixed_sigma: float,
     max_taps: int,
-    sums: wp.array(dtype=wp.float64),
-    counts: wp.array(dtype=wp.int32),
+    sums: wp.array(dtype=wp.vec3d),
     depth_out: wp.array(dtype=float),
 ):
     """One 1D pass of the separable bilateral filter (Pham & van Vliet 2005).
@@ -329,10 +340,10 @@ def bilateral_pass(
     The same spatial sigma, radius and range sigma as ``bilateral_filter``; the range reference is
     the pixel's value in this pass's input. Two passes (x, then y) cost O(radius) per pixel instead
     of O(radius^2). A radius wider than ``max_taps`` (> 0) is covered by at most ``max_taps`` taps a
-    side, each the average of the ``tap_stride`` fluid pixels it stands for (from ``line_prefix``'s
-    sums), weighted by their count and by the Gaussian at the box's centre: the cost per pixel stops
-    growing with the projected particle size, and neighbouring pixels still average overlapping
-    samples of the sphere bumps (single pixels every k apart made the normals 5x rougher).
+    side, each standing for the ``tap_stride`` pixels of its stretch (``stretch_tap``): the cost per
+    pixel stops growing with the projected particle size, and neighbouring pixels still average
+    overlapping samples of the sphere bumps (single pixels every k apart made the normals 5x
+    rougher).
     With ``fixed_sigma`` > 0 and ``range_sigma`` 0 it is a plain Gaussian pass of that sigma and a
     radius of 3 sigma over fluid pixels (the naive screen-space blur)."""
     idx = wp.tid() + offset
@@ -380,27 +391,21 @@ def bilateral_pass(
                     s += w * db
                     ws += w
     else:
-        # tap t covers offsets (t - 1) stride + 1 .. t stride on each side, centred between them
+        # tap t stands for offsets (t - 1) stride + 1 .. t stride on each side
         taps = (rad + stride - 1) // stride
         for t in range(1, taps + 1):
-            centre = float(t * stride) - 0.5 * float(stride - 1)
-            ww = wp.exp(-centre * centre * inv_s)
             near = (t - 1) * stride + 1
             far = t * stride
             if pos + near < limit:
-                a = box_tap(sums, counts, pos + near, wp.min(pos + far, limit - 1), step, line_start)
-                if a[1] > 0.0:
-                    dz = a[0] - d0
-                    w = ww * a[1] * wp.exp(-dz * dz * inv_r)
-                    s += w * a[0]
-                    ws += w
+                s_w = stretch_tap(depth_in, sums, pos + near, wp.min(pos + far, limit - 1), step, line_start, pos,
+                                  d0, inv_s, inv_r, range_sigma)
+                s += s_w[0]
+                ws += s_w[1]
             if pos - near >= 0:
-                b = box_tap(sums, counts, wp.max(pos - far, 0), pos - near, step, line_start)
-                if b[1] > 0.0:
-                    dz = b[0] - d0
-                    w = ww * b[1] * wp.exp(-dz * dz * inv_r)
-                    s += w * b[0]
-                    ws += w
+                s_w = stretch_tap(depth_in, sums, wp.max(pos - far, 0), pos - near, step, line_start, pos, d0,
+                                  inv_s, inv_r, range_sigma)
+                s += s_w[0]
+                ws += s_w[1]
     depth_out[idx] = s / ws
 
 
