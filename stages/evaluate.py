@@ -87,8 +87,8 @@ def main(opts: StageOptions) -> None:
         for m in methods:
             t = by_size[size][1][m]
             log.info("evaluate %4d px %-9s mean %6.2f deg, median %5.2f, <10 deg %5.1f%%, IoU %.3f, PSNR %.2f, "
-                     "flicker %.2f, %.0f ms/frame", size, m, t["mean_deg"], t["median_deg"], 100 * t["under_10"],
-                     t["iou"], t["psnr"], t["flicker_deg"], t["ms_per_frame"])
+                     "flicker %.2f, temporal %.2f, %.0f ms/frame", size, m, t["mean_deg"], t["median_deg"],
+                     100 * t["under_10"], t["iou"], t["psnr"], t["flicker_deg"], t["temporal_deg"], t["ms_per_frame"])
         if "metaball" in methods:
             t = by_size[size][1]["metaball"]
             log.info("evaluate %4d px metaball against its own ray-marched surface: mean %6.2f deg, median %5.2f, "

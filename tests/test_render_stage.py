@@ -164,6 +164,10 @@ def test_evaluate_smoke(tmp_path):
     own = metrics["overall"]["metaball"]
     assert 0 <= own["own_mean_deg"] <= 180 and 0 <= own["own_iou"] <= 1
     assert 0 <= own["surface_mean_deg"] <= 180, "the ray-marched surface is scored against the mesh too"
+    for seq in metrics["sequences"]:  # a per-pixel temporal error wherever there are two frames
+        t = seq["methods"]["refined"]["temporal_deg"]
+        assert (t == t) == (seq["frames"] > 1) and (t != t or 0 <= t <= 180)
+    assert 0 < metrics["overall"]["bilateral"]["temporal_deg"] <= 180 and "| temporal |" in report
     assert (entry / "methods.png").exists() and (entry / "examples.png").exists()
 
 

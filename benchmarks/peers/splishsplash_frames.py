@@ -7,7 +7,8 @@ block filling, walls are volume maps). This runs SPlisHSPlasH (MIT) through the
 scenes defined here, unlike the held-out SPlisHSPlasH frames of ``../shared/data/particles`` (a
 bunny, a dam break and a double dam break from splashsurf's test data), and writes each frame as
 SPlisHSPlasH's own Partio BGEO export, which the imported scenes ``configs/scenes/sph_*.yaml``
-read:
+read, and one held-out sequence (``sph_heldout_columns``, evaluated with its per-pixel temporal
+error, never trained on):
 
     .venv/bin/pip install -e '.[bench]'
     .venv/bin/python benchmarks/peers/splishsplash_frames.py [--scenes sph_pool_drop sph_slosh] [--out data/external]
@@ -45,6 +46,14 @@ SCENES = {
         "radius": 0.02, "domain": [2.2, 1.0, 1.0],
         "blocks": [([0.0, 0.0, 0.0], [2.2, 0.2, 1.0], [0.0, 0.0, 0.0]),
                    ([0.1, 0.35, 0.3], [0.5, 0.75, 0.7], [2.5, 0.5, 0.0])],
+    },
+    # held out, never trained on (configs/generalize.yaml): two columns at opposite corners collapse
+    # into a shallow basin and meet in the middle, particles of 12.5 mm
+    "sph_heldout_columns": {
+        "radius": 0.0125, "domain": [1.6, 1.0, 1.0],
+        "blocks": [([0.0, 0.0, 0.0], [1.6, 0.1, 1.0], [0.0, 0.0, 0.0]),
+                   ([0.05, 0.1, 0.05], [0.35, 0.6, 0.45], [0.0, 0.0, 0.0]),
+                   ([1.25, 0.1, 0.55], [1.55, 0.6, 0.95], [0.0, 0.0, 0.0])],
     },
 }
 FPS = 30.0

@@ -8,15 +8,18 @@ from pathlib import Path
 from pipeline import cache
 from pipeline.methods import NAMES
 
+NAN = float("nan")
+
 HEADER = ("| method | mean (deg) | median (deg) | < 5 deg | < 10 deg | < 20 deg | missed | IoU | PSNR (dB) | "
-          "SSIM | flicker (deg) | ms/frame | mean on its mask (deg) |")
+          "SSIM | flicker (deg) | temporal (deg) | ms/frame | mean on its mask (deg) |")
 
 
 def method_row(name: str, r: dict) -> str:
     """One row of the overall table."""
     return (f"| {name} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | {100 * r['under_5']:.1f}% "
             f"| {100 * r['under_10']:.1f}% | {100 * r['under_20']:.1f}% | {100 * r['missed']:.2f}% | {r['iou']:.3f} "
-            f"| {r['psnr']:.2f} | {r['ssim']:.3f} | {r['flicker_deg']:.2f} | {r['ms_per_frame']:.0f} "
+            f"| {r['psnr']:.2f} | {r['ssim']:.3f} | {r['flicker_deg']:.2f} | {r.get('temporal_deg', NAN):.2f} "
+            f"| {r['ms_per_frame']:.0f} "
             f"| {r['mask_mean_deg']:.2f} |")
 
 
@@ -28,8 +31,9 @@ def ratios(table: dict, method: str = "refined") -> dict[str, float]:
     r = table[method]
     out = {}
     for base in ("nrf", "bilateral"):
-        for k in ("mean_deg", "median_deg", "flicker_deg"):
-            out[f"{k}/{base}"] = r[k] / table[base][k] if table[base][k] else float("nan")
+        for k in ("mean_deg", "median_deg", "flicker_deg", "temporal_deg"):
+            mine, theirs = r.get(k, NAN), table[base].get(k, NAN)
+            out[f"{k}/{base}"] = mine / theirs if theirs else NAN
     return out
 
 
@@ -45,19 +49,23 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
              "one counts against its IoU; the last column is the older figure, over the pixels where both the "
              "method and the mesh show fluid. PSNR/SSIM compare the shaded image with the shaded mesh "
              "(tone-mapped, [0, 1]); flicker is the mean frame-to-frame change of the mean error (sequences of "
-             "more than one frame). Overall figures weight each sequence by its pixels "
-             "(means, shares) or take the median of the sequences' medians.", ""]
+             "more than one frame); temporal is the per-pixel temporal error: the angle between a method's change "
+             "of normal and the mesh's own change at each mesh pixel followed to the next evaluated frame with the "
+             "exact particle motion (pipeline/evaluate/temporal.py). Overall figures weight each sequence by its "
+             "pixels (means, shares) or take the median of the sequences' medians.", ""]
     summary = [r for r in (ratios(by_size[s][1]) for s in sizes) if r]
     if summary:
         lines += ["## Refined against the filters", "",
                   "| size | mean / narrow-range | median / narrow-range | mean / bilateral | median / bilateral | "
-                  "flicker / bilateral | IoU |", "|---|---|---|---|---|---|---|"]
+                  "flicker / bilateral | temporal / bilateral | temporal / narrow-range | IoU |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for s in sizes:
             q, table = ratios(by_size[s][1]), by_size[s][1]
             if q:
                 lines.append(f"| {s} | {q['mean_deg/nrf']:.3f} | {q['median_deg/nrf']:.3f} | "
                              f"{q['mean_deg/bilateral']:.3f} | {q['median_deg/bilateral']:.3f} | "
-                             f"{q['flicker_deg/bilateral']:.3f} | {table['refined']['iou']:.3f} |")
+                             f"{q['flicker_deg/bilateral']:.3f} | {q['temporal_deg/bilateral']:.3f} | "
+                             f"{q['temporal_deg/nrf']:.3f} | {table['refined']['iou']:.3f} |")
         lines.append("")
     if "metaball" in methods:
         lines += ["## Metaballs against their own ray-marched surface", "",
@@ -77,9 +85,10 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
         lines.append("")
     for i, s in enumerate(sizes):
         results, table = by_size[s]
-        lines += [f"## {s} x {s}", "", HEADER, "|" + "---|" * 13]
+        lines += [f"## {s} x {s}", "", HEADER, "|" + "---|" * 14]
         lines += [method_row(NAMES.get(m, m), table[m]) for m in methods]
-        lines += [f"| mesh (reference) | 0 | 0 | | | | 0 | 1 | | | | {table['mesh']['ms_per_frame']:.0f} | 0 |", ""]
+        lines += [f"| mesh (reference) | 0 | 0 | | | | 0 | 1 | | | | 0 | {table['mesh']['ms_per_frame']:.0f} | 0 |",
+                  ""]
         if i == 0:
             lines += ["![mean error per method](methods.png)", "", "![error over frames](frames.png)", "",
                       "![examples](examples.png)", ""]
@@ -87,14 +96,14 @@ def write_report(folder: Path, by_size: dict[int, tuple[list[dict], dict]], meth
         for res in results:
             lines += [f"#### {res['scene']} / {res['camera']} ({res['frames']} frames, particles "
                       f"{res.get('radius_px', 0):.1f} px)", "",
-                      "| method | mean (deg) | median (deg) | < 10 deg | missed | IoU | PSNR | SSIM | flicker |",
-                      "|---|---|---|---|---|---|---|---|---|"]
+                      "| method | mean (deg) | median (deg) | < 10 deg | missed | IoU | PSNR | SSIM | flicker | "
+                      "temporal |", "|---|---|---|---|---|---|---|---|---|---|"]
             for m in methods:
                 r = res["methods"][m]
                 lines.append(f"| {NAMES.get(m, m)} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} | "
                              f"{100 * r['under_10']:.1f}% | {100 * r['missed']:.2f}% | {r['iou']:.3f} | "
                              f"{r['psnr']:.2f} | {r['ssim']:.3f} | "
-                             f"{r['flicker_deg']:.2f} |")
+                             f"{r['flicker_deg']:.2f} | {r.get('temporal_deg', NAN):.2f} |")
             lines.append("")
     with cache.atomic_path(folder / "report.md") as tmp:
         tmp.write_text("\n".join(lines))

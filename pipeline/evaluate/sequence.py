@@ -4,7 +4,9 @@ Per method: normal error over the reference's pixels (mean, median, share under 
 a reference pixel the method misses scores 90 degrees: ``metrics.errors_over_reference``), the share
 of reference pixels missed, the error on the method's own mask alone (the older, looser figure),
 silhouette IoU, PSNR and SSIM of the shaded image against the shaded reference, temporal flicker
-and milliseconds per frame from particles to the normal map.
+(the frame-to-frame change of the mean error), the per-pixel temporal error between consecutive
+evaluated frames (``pipeline.evaluate.temporal``) and milliseconds per frame from particles to the
+normal map.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from tqdm import tqdm
 from pipeline.camera import camera_for_frame
 from pipeline.config import Config, SceneConfig
 from pipeline.device import warp_device
+from pipeline.evaluate.temporal import surface_flow, temporal_errors
 from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, spread
 from pipeline.methods import method_maps, normal_source, refine, shade_frame
@@ -71,9 +74,11 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
     launch = Launcher(warp_device(device)) if "metaball" in methods else None
     background = BackgroundRenderer(Surroundings.of_scene(seq.scene), rp, width, height)
     scores = {k: {m: [] for m in methods} for k in ("errors", "on_mask", "missed", "per_frame", "iou", "psnr",
-                                                     "ssim")}
+                                                     "ssim", "temporal", "temporal_missed")}
     own: dict[str, list] = {"errors": [], "iou": [], "surface": []}
     examples, radii = [], []
+    ss = ScreenSpace(warp_device(device))
+    previous = None  # the last frame's particles, camera and maps, for the temporal error
     try:
         for k, r in enumerate(tqdm(records, desc=f"evaluate {seq.scene.name}/{seq.camera}", unit="frame",
                                    leave=False)):
@@ -85,8 +90,8 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
             target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
             maps = {m: _maps(m, ch, refiner, rp.normal_threshold, cam.focal_px, seq.particle_radius)
                     for m in (*methods, "mesh") if m != "metaball"}
+            x, _ = load_frame(seq.sim_dir / frame_name(r["frame"]))
             if "metaball" in methods:
-                x, _ = load_frame(seq.sim_dir / frame_name(r["frame"]))
                 g = metaball.gbuffers(x, seq.particle_radius, cam, launch)
                 maps["metaball"] = (g["normals"], g["mask"] > 0, g["depth"])
                 if k % config.metaball.target_stride == 0:
@@ -108,6 +113,11 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
                 scores["missed"][m].append(missed)
                 scores["per_frame"][m].append(float(e.mean()) if e.size else float("nan"))
                 scores["iou"][m].append(iou(mask, t_mask))
+            now = {"x": x, "cam": cam, "maps": maps, "target": target, "t_mask": t_mask,
+                   "depth": np.where(t_mask, ch["target.Z"], 0.0)}
+            if previous is not None:
+                _score_change(ss, previous, now, methods, seq.particle_radius, scores)
+            previous = now
             if len(examples) < 3 and t_mask.mean() > 0.02 and r["index"] % 4 == 0:
                 examples.append({"scene": seq.scene.name, "frame": r["frame"], "target": target,
                                  **{m: maps[m][0] for m in methods}})
@@ -116,6 +126,7 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
                 scores["ssim"][m].append(structural_similarity(shaded["mesh"], shaded[m], channel_axis=-1,
                                                                data_range=1.0))
     finally:
+        ss.close()
         background.close()
         shader.close()
         if launch is not None:
@@ -132,6 +143,17 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
             "radius_px": float(np.median(radii)) if radii else 0.0, "methods": result, "examples": examples}
 
 
+def _score_change(ss: ScreenSpace, before: dict, after: dict, methods, radius: float, scores: dict) -> None:
+    """Each method's per-pixel temporal errors from one evaluated frame to the next."""
+    flow = surface_flow(ss, before["x"], after["x"], radius, before["cam"], after["cam"], before["depth"],
+                        before["t_mask"], after["depth"], after["t_mask"])
+    for m in methods:
+        e, missed = temporal_errors(flow, before["maps"][m][:2], after["maps"][m][:2], before["target"],
+                                    after["target"], before["cam"], after["cam"])
+        scores["temporal"][m].append(e)
+        scores["temporal_missed"][m].append(missed)
+
+
 def _summary(m: str, scores: dict, timings: dict) -> dict:
     per_frame = scores["per_frame"][m]
     steps = np.abs(np.diff(np.array(per_frame)))
@@ -139,12 +161,17 @@ def _summary(m: str, scores: dict, timings: dict) -> dict:
     errors, on_mask = scores["errors"][m], scores["on_mask"][m]
     summary = summarize_angles(np.concatenate(errors) if errors else np.zeros(0))
     shared = np.concatenate(on_mask) if on_mask else np.zeros(0)
+    temporal = np.concatenate(scores["temporal"][m]) if scores["temporal"][m] else np.zeros(0)
+    followed = temporal.size + sum(scores["temporal_missed"][m])
     # a sequence of one frame has no change to measure: NaN, left out of the averages
     return {**summary, "missed": sum(scores["missed"][m]) / max(summary["pixels"], 1),
             "mask_mean_deg": float(shared.mean()) if shared.size else float("nan"),
             "iou": float(np.mean(scores["iou"][m])), "psnr": float(np.mean(scores["psnr"][m])),
             "ssim": float(np.mean(scores["ssim"][m])),
             "flicker_deg": float(steps.mean()) if steps.size else float("nan"),
+            "temporal_deg": float(temporal.mean()) if temporal.size else float("nan"),
+            "temporal_pixels": int(temporal.size),
+            "temporal_missed": sum(scores["temporal_missed"][m]) / followed if followed else float("nan"),
             "ms_per_frame": timings.get(m, float("nan")), "per_frame_mean_deg": per_frame}
 
 
@@ -187,6 +214,10 @@ def aggregate(results: list[dict], methods) -> dict:
         table[m]["median_deg"] = float(np.nanmedian([row["median_deg"] for row in rows]))
         for k in ("iou", "psnr", "ssim", "flicker_deg", "ms_per_frame"):
             table[m][k] = float(np.nanmean([row[k] for row in rows]))
+        # per-pixel temporal error: pixel-weighted over the sequences of more than one frame
+        w = np.array([row.get("temporal_pixels", 0) for row in rows], float)
+        table[m]["temporal_deg"] = (float(np.nansum([row["temporal_deg"] * wi for row, wi in zip(rows, w, strict=True)
+                                                     if wi > 0]) / w.sum()) if w.sum() else float("nan"))
     if "metaball" in methods:  # against its own ray-marched surface
         rows = [r["methods"]["metaball"] for r in results]
         w = np.array([row["own_pixels"] for row in rows], float)
