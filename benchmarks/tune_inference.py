@@ -1,0 +1,90 @@
+"""The refined method's two inference settings, chosen on the validation scene only.
+
+The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
+than the particles' splat), and views of small particles are interpolated up to the working radius,
+at most ``MAX_UPSCALE`` times. Both change what the evaluation scores, so they are chosen here on
+the scene that chooses the trainer's best checkpoint (``train.validation_scenes``), never on the
+reported held-out sequences. This prints, for each value of one setting (the other at its default),
+the refined normals' mean and median error over the mesh's pixels (a missed pixel scores 90
+degrees, as in the report), the missed share and IoU, at each size, for both cameras of the
+validation scene.
+
+    .venv/bin/python benchmarks/tune_inference.py [--config configs/generalize.yaml] [--sizes 256 512 1024]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import pipeline.methods as methods  # noqa: E402
+import pipeline.model.scale as scale  # noqa: E402
+from pipeline.camera import camera_for_frame  # noqa: E402
+from pipeline.dataset import CAMERAS  # noqa: E402
+from pipeline.exr import read_exr, stack  # noqa: E402
+from pipeline.frames import read_sequence_info, spread  # noqa: E402
+from pipeline.metrics import errors_over_reference, iou  # noqa: E402
+from stages import dataset, render, simulate  # noqa: E402
+from stages.common import StageOptions, make_run  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", default=str(ROOT / "configs" / "generalize.yaml"))
+    parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
+    parser.add_argument("--frames", type=int, default=8, help="views per camera")
+    parser.add_argument("--reaches", type=int, nargs="+", default=[0, 1, 2, 3, 4, 6])
+    parser.add_argument("--upscales", type=float, nargs="+", default=[1.0, 2.0, 4.0])
+    args = parser.parse_args()
+    wp.config.quiet = True
+    defaults = {"reach": methods.REFINED_REACH_PX, "upscale": scale.MAX_UPSCALE}
+    settings = ([("reach", v) for v in args.reaches] + [("upscale", v) for v in args.upscales])
+    scores: dict = {}
+    for size in args.sizes:
+        run = make_run(StageOptions(config=args.config), {"dataset": {"width": size, "height": size}})
+        refiner = render.networks(run, ("refined",))[0]
+        threshold = run.config.render.normal_threshold
+        for name in run.config.train.validation_scenes:
+            scene = run.loaded.scenes[name]
+            entry, sim = dataset.ensure(run, scene), simulate.ensure(run, scene)
+            radius = read_sequence_info(sim.dir).particle_radius
+            for camera in CAMERAS:
+                records = [r for r in entry.manifest()["frames"] if r["camera"] == camera]
+                for r in spread(records, args.frames):
+                    ch = read_exr(entry.dir / r["file"])
+                    cam = camera_for_frame(scene.cameras, camera, r["index"], len(records), size, size)
+                    target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
+                    for key, value in settings:
+                        methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
+                        scale.MAX_UPSCALE = value if key == "upscale" else defaults["upscale"]
+                        n, mask, _ = methods.refine(refiner, ch, threshold, cam.focal_px, radius)
+                        e, _, missed = errors_over_reference(n, target, mask, t_mask)
+                        got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
+                        got["errors"].append(e)
+                        got["missed"] += missed
+                        got["iou"].append(iou(mask, t_mask))
+        print(f"  {size} px done", flush=True)
+    methods.REFINED_REACH_PX, scale.MAX_UPSCALE = defaults["reach"], defaults["upscale"]
+    print(f"\nvalidation scenes of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
+          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale {defaults['upscale']:g}x")
+    print(f"{'setting':>14s}" + "".join(f" {f'{s} px':>30s}" for s in args.sizes) + f" {'avg mean':>9s}")
+    for key, value in settings:
+        cells, means = "", []
+        for size in args.sizes:
+            got = scores[(size, key, value)]
+            e = np.concatenate(got["errors"])
+            means.append(float(e.mean()))
+            cells += (f" {e.mean():6.2f} / {np.median(e):5.2f} {100 * got['missed'] / e.size:5.2f}% "
+                      f"{np.mean(got['iou']):.3f}")
+        print(f"{f'{key} {value:g}':>14s}{cells} {np.mean(means):9.2f}")
+
+
+if __name__ == "__main__":
+    main()
