@@ -1,8 +1,9 @@
 """The refined method's two inference settings, chosen on the validation scene only.
 
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
-than the particles' splat), and views of small particles are interpolated up to the working radius,
-at most ``MAX_UPSCALE`` times. Both change what the evaluation scores, so they are chosen here on
+than the particles' splat), and at render time views of small particles are interpolated up to the
+working radius while the fluid's box stays within ``MAX_WORKING_PIXELS`` (1: never). Both change
+what the evaluation scores, so they are chosen here on
 the scene that chooses the trainer's best checkpoint (``train.validation_scenes``), never on the
 reported held-out sequences. This prints, for each value of one setting (the other at its default),
 the refined normals' mean and median error over the mesh's pixels (a missed pixel scores 90
@@ -25,7 +26,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import pipeline.methods as methods  # noqa: E402
-import pipeline.model.scale as scale  # noqa: E402
 from pipeline.camera import camera_for_frame  # noqa: E402
 from pipeline.dataset import CAMERAS  # noqa: E402
 from pipeline.exr import read_exr, stack  # noqa: E402
@@ -41,11 +41,12 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     parser.add_argument("--frames", type=int, default=8, help="views per camera")
     parser.add_argument("--reaches", type=int, nargs="+", default=[0, 1, 2, 3, 4, 6])
-    parser.add_argument("--upscales", type=float, nargs="+", default=[1.0, 2.0, 4.0])
+    parser.add_argument("--bounds", type=int, nargs="+", default=[1, 1 << 17, 1 << 19, 1 << 40],
+                        help="MAX_WORKING_PIXELS values (1: no upscale)")
     args = parser.parse_args()
     wp.config.quiet = True
-    defaults = {"reach": methods.REFINED_REACH_PX, "upscale": scale.MAX_UPSCALE}
-    settings = ([("reach", v) for v in args.reaches] + [("upscale", v) for v in args.upscales])
+    defaults = {"reach": methods.REFINED_REACH_PX, "bound": methods.MAX_WORKING_PIXELS}
+    settings = ([("reach", v) for v in args.reaches] + [("bound", v) for v in args.bounds])
     scores: dict = {}
     for size in args.sizes:
         run = make_run(StageOptions(config=args.config), {"dataset": {"width": size, "height": size}})
@@ -63,7 +64,7 @@ def main() -> None:
                     target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
                     for key, value in settings:
                         methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
-                        scale.MAX_UPSCALE = value if key == "upscale" else defaults["upscale"]
+                        methods.MAX_WORKING_PIXELS = value if key == "bound" else defaults["bound"]
                         n, mask, _ = methods.refine(refiner, ch, threshold, cam.focal_px, radius)
                         e, _, missed = errors_over_reference(n, target, mask, t_mask)
                         got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
@@ -71,9 +72,9 @@ def main() -> None:
                         got["missed"] += missed
                         got["iou"].append(iou(mask, t_mask))
         print(f"  {size} px done", flush=True)
-    methods.REFINED_REACH_PX, scale.MAX_UPSCALE = defaults["reach"], defaults["upscale"]
+    methods.REFINED_REACH_PX, methods.MAX_WORKING_PIXELS = defaults["reach"], defaults["bound"]
     print(f"\nvalidation scenes of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
-          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale {defaults['upscale']:g}x")
+          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale bound {defaults['bound']} px")
     print(f"{'setting':>14s}" + "".join(f" {f'{s} px':>30s}" for s in args.sizes) + f" {'avg mean':>9s}")
     for key, value in settings:
         cells, means = "", []

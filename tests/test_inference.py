@@ -71,6 +71,10 @@ def test_refiner_without_fluid_returns_zeros():
     assert not Refiner(g)(x, np.zeros((64, 64), bool)).any()
 
 
+VIEW_RADIUS = 0.012
+"""Particles of about 5 px in ``_refine_view``'s 160 px view: the working scale brings them down."""
+
+
 def _refine_view():
     """The shipped refiner and the channels of a small blob of particles at 160 px, which its
     working scale resamples (with the ellipsoid splat when the refiner takes it)."""
@@ -84,7 +88,7 @@ def _refine_view():
     x = (np.random.default_rng(2).normal(size=(2500, 3)) * (0.06, 0.03, 0.05) + (0, 0, -0.5)).astype(np.float32)
     cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 160, 160)
     ss = ScreenSpace("cpu")
-    ch = screen_space_inputs(x, 0.004, cam, DatasetConfig(), ss, filters=("bilateral",))
+    ch = screen_space_inputs(x, VIEW_RADIUS, cam, DatasetConfig(), ss, filters=("bilateral",))
     ss.close()
     refiner = load_refiner(SHIPPED_WEIGHTS)
     if refiner.splat != "sphere":
@@ -92,8 +96,8 @@ def _refine_view():
         from pipeline.surface import particle_ellipsoids
 
         launch, ss = Launcher("cpu"), ScreenSpace("cpu")
-        ch.update(screen_space_inputs(x, 0.004, cam, DatasetConfig(), ss, filters=None,
-                                      ellipsoids=particle_ellipsoids(x, 0.004, DatasetConfig(), launch),
+        ch.update(screen_space_inputs(x, VIEW_RADIUS, cam, DatasetConfig(), ss, filters=None,
+                                      ellipsoids=particle_ellipsoids(x, VIEW_RADIUS, DatasetConfig(), launch),
                                       aniso_filters=("bilateral",)))
         launch.close()
         ss.close()
@@ -105,14 +109,14 @@ def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
     normalises only masked pixels; it must give what the separate rules give (``refined_mask``,
     ``extend_depth``, the normalised network output), at a size the working scale changes."""
     from pipeline.masks import REFINED_REACH_PX, refined_mask
-    from pipeline.methods import extend_depth, refine
+    from pipeline.methods import MAX_WORKING_PIXELS, extend_depth, refine
     from pipeline.model.data import input_channels, prepare
     from pipeline.model.scale import resize_normals
 
     refiner, ch, cam = _refine_view()
     names = input_channels(refiner.splat)
-    normals, mask, depth = refine(refiner, ch, 0.5, cam.focal_px, 0.004)
-    view = prepare(ch, refiner.spec, cam.focal_px, 0.004)
+    normals, mask, depth = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS)
+    view = prepare(ch, refiner.spec, cam.focal_px, VIEW_RADIUS, max_pixels=MAX_WORKING_PIXELS)
     assert view.scale != 1.0, "the view must be resampled for the test to cover the way back"
     raw = resize_normals(refiner(view.inputs, view.fluid), mask.shape)
     fluid = ch[names.fluid] > 0
@@ -132,11 +136,11 @@ def test_refine_makes_the_input_on_the_device_as_numpy_does():
     from pipeline.model.data import input_channels, prepare
 
     refiner, ch, cam = _refine_view()
-    host = refine(refiner, ch, 0.5, cam.focal_px, 0.004, on_device=False)
-    dev = refine(refiner, ch, 0.5, cam.focal_px, 0.004, on_device=True)
+    host = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=False)
+    dev = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=True)
     names = input_channels(refiner.splat)
     tensors = {c: torch.from_numpy(ch[c]) for c in (*names.normal, names.raw, names.blurred)}
-    a, b = prepare(ch, refiner.spec, cam.focal_px, 0.004), prepare(tensors, refiner.spec, cam.focal_px, 0.004)
+    a, b = (prepare(c, refiner.spec, cam.focal_px, VIEW_RADIUS) for c in (ch, tensors))
     assert isinstance(b.inputs, torch.Tensor) and b.scale == a.scale != 1.0
     np.testing.assert_array_equal(b.fluid.numpy(), a.fluid)
     np.testing.assert_allclose(b.inputs.numpy(), a.inputs, atol=5e-5)
@@ -186,17 +190,22 @@ def test_the_refined_frame_kept_on_the_device_shades_as_the_host_frame():
 
 
 @pytest.mark.parametrize("height, scale", [(220, 1.0), (420, 0.5), (110, 2.0), (150, None)])
-def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(height, scale):
+def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(height, scale, monkeypatch):
     """``refine`` prepares, resamples and masks only the fluid's part of a view (grown by all that
     reaches a fluid pixel, on the working scale's grid): bit for bit what the whole view gives, at a
-    working scale of 1, 1/2 and 2. At 2^(1/2) no part is cut (its grid depends on the image's size)."""
+    working scale of 1, 1/2 and 2. At 2^(1/2) no part is cut (its grid depends on the image's size).
+    Render time does not upscale (``MAX_WORKING_PIXELS`` 1); a bound that lets it, as
+    ``bench_working_scale.py`` sets, reaches the upscaled scales."""
+    import pipeline.methods as methods
     from pipeline.camera import Camera, look_at
     from pipeline.config import DatasetConfig
     from pipeline.methods import refine, refine_view, refine_window
     from pipeline.model import SHIPPED_WEIGHTS
     from pipeline.model.data import input_channels
     from pipeline.model.inference import load_refiner
-    from pipeline.model.scale import MAX_WORKING_PIXELS, working_scale
+    from pipeline.model.scale import working_scale
+
+    monkeypatch.setattr(methods, "MAX_WORKING_PIXELS", 1 << 19)
     from pipeline.parallel import Launcher
     from pipeline.screen import ScreenSpace
     from pipeline.surface import particle_ellipsoids
@@ -216,8 +225,9 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     ss.close()
     names = input_channels(refiner.splat)
     raw, fluid = ch[names.raw], ch[names.fluid] > 0
-    assert working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, MAX_WORKING_PIXELS) == \
+    assert working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, methods.MAX_WORKING_PIXELS) == \
         (scale or 2**0.5)
+    assert working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, 1) == min(scale or 2**0.5, 1.0)
     window = refine_window(refiner, raw, fluid, cam.focal_px, r)
     assert (window is None) == (scale is None)
     if window is not None:
