@@ -5,7 +5,8 @@ smaller particles are interpolated up (at most 4x), which costs the square of th
 time. ``MAX_WORKING_PIXELS`` bounds that upscale by the fluid's bounding box. This prints, for the
 split SPlisHSPlasH frames of ``bench_scale.py`` at several image sizes (so several projected particle
 sizes), the refiner's time and its normal error against the mesh with each bound: none (4x at
-most), 1 MP, 0.5 MP (the default) and no upscale at all.
+most), 1 MP, 0.5 MP and no upscale at all (the default: ``tune_inference.py`` chose it on the
+validation scene).
 
     .venv/bin/python benchmarks/bench_working_scale.py [--counts 38k 303k 1022k]
 """
@@ -39,7 +40,7 @@ from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402
 from pipeline.timing import Timings  # noqa: E402
 
-BOUNDS = {"none (4x)": 1 << 40, "1 MP": 1 << 20, "0.5 MP (default)": 1 << 19, "no upscale": 1}
+BOUNDS = {"none (4x)": 1 << 40, "1 MP": 1 << 20, "0.5 MP": 1 << 19, "no upscale (default)": 1}
 SIZES = ((1920, 1080), (960, 540), (480, 270))
 
 

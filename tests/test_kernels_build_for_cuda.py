@@ -9,7 +9,8 @@ import importlib
 import pytest
 import warp as wp
 
-MODULES = ["pipeline.sim.kernels", "pipeline.sim.native", "pipeline.screen.kernels", "pipeline.surface.kernels",
+MODULES = ["pipeline.sim.kernels", "pipeline.sim.native", "pipeline.screen.kernels", "pipeline.screen.filters",
+           "pipeline.surface.kernels",
            "pipeline.shading.kernels", "pipeline.metaball.kernels"]
 
 

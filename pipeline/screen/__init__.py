@@ -18,6 +18,7 @@ from pipeline.config import DatasetConfig
 from pipeline.device import download, on_torch_stream, torch_waits_for_warp, wait_for_downloads, warp_waits_for_torch
 from pipeline.ellipsoids import Ellipsoids
 from pipeline.parallel import Launcher
+from pipeline.screen import filters as F
 from pipeline.screen import kernels as K
 from pipeline.timing import Timings
 from pipeline.vectors import host, is_tensor
@@ -182,8 +183,8 @@ class ScreenSpace:
         a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
         args = [1.0, 0.0, 0.0, 0.0, max(w, h), sigma_px, 0]  # a fixed sigma, no range term, every pixel
         unused = self._buffer("no_sums", 1, wp.vec3d)
-        self.launch(K.bilateral_pass, w * h, [depth, w, h, 0, *args, unused, a])
-        self.launch(K.bilateral_pass, w * h, [a, w, h, 1, *args, unused, b])
+        self.launch(F.bilateral_pass, w * h, [depth, w, h, 0, *args, unused, a])
+        self.launch(F.bilateral_pass, w * h, [a, w, h, 1, *args, unused, b])
         return b
 
     def _bilateral(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
@@ -191,14 +192,14 @@ class ScreenSpace:
         out = self._buffer("bilateral", w * h)
         args = [camera.focal_px, r, p.bilateral_sigma_px_scale, p.bilateral_range_radii * r, p.bilateral_max_radius_px]
         if p.filter_mode == "exact":
-            self.launch(K.bilateral_filter, w * h, [depth, w, h, *args, out])
+            self.launch(F.bilateral_filter, w * h, [depth, w, h, *args, out])
             return out
         a = self._buffer("pass", w * h)
         sums = self._buffer("line_sums", w * h, wp.vec3d)
         for axis, src, dst in ((0, depth, a), (1, a, out)):
             if p.bilateral_max_taps:
-                self.launch(K.line_prefix, h if axis == 0 else w, [src, w, h, axis, sums])
-            self.launch(K.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
+                self.launch(F.line_prefix, h if axis == 0 else w, [src, w, h, axis, sums])
+            self.launch(F.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
         return out
 
     def _narrow_range(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:
@@ -212,12 +213,12 @@ class ScreenSpace:
         for _ in range(p.nrf_iterations):
             for axis in (0, 1):
                 dst = bufs[k]
-                self.launch(K.narrow_range_pass, w * h, [src, w, h, axis, camera.focal_px, r, p.nrf_radius_scale,
+                self.launch(F.narrow_range_pass, w * h, [src, w, h, axis, camera.focal_px, r, p.nrf_radius_scale,
                                                          p.nrf_max_radius_px, delta, mu, taps, dst])
                 src, k = dst, 1 - k
         if p.nrf_cleanup_radius_px > 0:
             dst = bufs[k]
-            self.launch(K.narrow_range_cleanup, w * h, [src, w, h, p.nrf_cleanup_radius_px, delta, mu, dst])
+            self.launch(F.narrow_range_cleanup, w * h, [src, w, h, p.nrf_cleanup_radius_px, delta, mu, dst])
             src = dst
         return src
 
