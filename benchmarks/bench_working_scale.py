@@ -5,8 +5,9 @@ smaller particles are interpolated up (at most 4x), which costs the square of th
 time. ``MAX_WORKING_PIXELS`` bounds that upscale by the fluid's bounding box. This prints, for the
 split SPlisHSPlasH frames of ``bench_scale.py`` at several image sizes (so several projected particle
 sizes), the refiner's time and its normal error against the mesh with each bound: none (4x at
-most), 1 MP, 0.5 MP and no upscale at all (the default: ``tune_inference.py`` chose it on the
-validation scene).
+most), 1 MP, 0.5 MP (the default's bound) and no upscale at all, each for every particle size (the
+default upscales only particles under ``UPSCALE_BELOW_PX``, 1.6 px, which ``tune_inference.py``
+chose on the validation scene).
 
     .venv/bin/python benchmarks/bench_working_scale.py [--counts 38k 303k 1022k]
 """
@@ -40,7 +41,7 @@ from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402
 from pipeline.timing import Timings  # noqa: E402
 
-BOUNDS = {"none (4x)": 1 << 40, "1 MP": 1 << 20, "0.5 MP": 1 << 19, "no upscale (default)": 1}
+BOUNDS = {"none (4x)": 1 << 40, "1 MP": 1 << 20, "0.5 MP": 1 << 19, "no upscale": 1}
 SIZES = ((1920, 1080), (960, 540), (480, 270))
 
 
@@ -64,6 +65,7 @@ def main() -> None:
             mesh = normal_source("mesh", x, r, cam, p, ss, launch, refiner, frame_cache=cache)
             mesh_mask = mesh["mask"] > 0
             raw = ss.splat(x, r, cam).depth
+            methods.UPSCALE_BELOW_PX = float("inf")  # each bound at every particle size
             for name, bound in BOUNDS.items():
                 methods.MAX_WORKING_PIXELS = bound  # what refine() reads
                 times = []

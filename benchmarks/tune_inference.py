@@ -1,9 +1,9 @@
 """The refined method's two inference settings, chosen on the validation scene only.
 
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
-than the particles' splat), and at render time views of small particles are interpolated up to the
-working radius while the fluid's box stays within ``MAX_WORKING_PIXELS`` (1: never). Both change
-what the evaluation scores, so they are chosen here on
+than the particles' splat), and at render time views whose particles are smaller than
+``UPSCALE_BELOW_PX`` are interpolated up to the working radius. Both change what the evaluation
+scores, so they are chosen here on
 the scene that chooses the trainer's best checkpoint (``train.validation_scenes``), never on the
 reported held-out sequences. This prints, for each value of one setting (the other at its default),
 the refined normals' mean and median error over the mesh's pixels (a missed pixel scores 90
@@ -31,6 +31,7 @@ from pipeline.dataset import CAMERAS  # noqa: E402
 from pipeline.exr import read_exr, stack  # noqa: E402
 from pipeline.frames import read_sequence_info, spread  # noqa: E402
 from pipeline.metrics import errors_over_reference, iou  # noqa: E402
+from pipeline.model.scale import median_radius_px  # noqa: E402
 from stages import dataset, render, simulate  # noqa: E402
 from stages.common import StageOptions, make_run  # noqa: E402
 
@@ -41,13 +42,14 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024])
     parser.add_argument("--frames", type=int, default=8, help="views per camera")
     parser.add_argument("--reaches", type=int, nargs="+", default=[0, 1, 2, 3, 4, 6])
-    parser.add_argument("--bounds", type=int, nargs="+", default=[1, 1 << 17, 1 << 19, 1 << 40],
-                        help="MAX_WORKING_PIXELS values (1: no upscale)")
+    parser.add_argument("--below", type=float, nargs="+", default=[0.0, 0.8, 1.0, 1.25, 1.5, float("inf")],
+                        help="UPSCALE_BELOW_PX values (0: never upscale, inf: always)")
     args = parser.parse_args()
     wp.config.quiet = True
-    defaults = {"reach": methods.REFINED_REACH_PX, "bound": methods.MAX_WORKING_PIXELS}
-    settings = ([("reach", v) for v in args.reaches] + [("bound", v) for v in args.bounds])
+    defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX}
+    settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below])
     scores: dict = {}
+    radii: dict[int, list[float]] = {}
     for size in args.sizes:
         run = make_run(StageOptions(config=args.config), {"dataset": {"width": size, "height": size}})
         refiner = render.networks(run, ("refined",))[0]
@@ -62,9 +64,10 @@ def main() -> None:
                     ch = read_exr(entry.dir / r["file"])
                     cam = camera_for_frame(scene.cameras, camera, r["index"], len(records), size, size)
                     target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
+                    radii.setdefault(size, []).append(median_radius_px(ch["Z"], cam.focal_px, radius))
                     for key, value in settings:
                         methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
-                        methods.MAX_WORKING_PIXELS = value if key == "bound" else defaults["bound"]
+                        methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
                         n, mask, _ = methods.refine(refiner, ch, threshold, cam.focal_px, radius)
                         e, _, missed = errors_over_reference(n, target, mask, t_mask)
                         got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
@@ -72,10 +75,11 @@ def main() -> None:
                         got["missed"] += missed
                         got["iou"].append(iou(mask, t_mask))
         print(f"  {size} px done", flush=True)
-    methods.REFINED_REACH_PX, methods.MAX_WORKING_PIXELS = defaults["reach"], defaults["bound"]
+    methods.REFINED_REACH_PX, methods.UPSCALE_BELOW_PX = defaults["reach"], defaults["below"]
     print(f"\nvalidation scenes of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
-          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale bound {defaults['bound']} px")
-    print(f"{'setting':>14s}" + "".join(f" {f'{s} px':>30s}" for s in args.sizes) + f" {'avg mean':>9s}")
+          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale below {defaults['below']:g} px")
+    print(f"{'setting':>14s}" + "".join(f" {f'{s} px (particles {np.median(radii[s]):.1f} px)':>30s}"
+                                        for s in args.sizes) + f" {'avg mean':>9s}")
     for key, value in settings:
         cells, means = "", []
         for size in args.sizes:

@@ -25,7 +25,13 @@ from pipeline.masks import REFINED_REACH_PX, NearestFluid, bounding_window, refi
 from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import RELIEF_WINDOW_RADII, input_channels, prepare
 from pipeline.model.inference import Refiner, fluid_window
-from pipeline.model.scale import MAX_WORKING_PIXELS, median_radius_px, resize_normal_map, working_scale
+from pipeline.model.scale import (
+    MAX_WORKING_PIXELS,
+    UPSCALE_BELOW_PX,
+    median_radius_px,
+    resize_normal_map,
+    working_scale,
+)
 from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.screen import kernels as K
@@ -146,7 +152,7 @@ def refine_window(refiner: Refiner, raw, fluid, focal_px: float | None,
     spec = refiner.spec
     scale = 1.0
     if spec.features == "radius" and focal_px and radius:
-        scale = working_scale(raw, focal_px, radius, spec.working_radius_px, MAX_WORKING_PIXELS)
+        scale = working_scale(raw, focal_px, radius, spec.working_radius_px, MAX_WORKING_PIXELS, UPSCALE_BELOW_PX)
     power = math.log2(scale)
     block = round(1.0 / scale) if scale < 1.0 else 1
     h, w = raw.shape
@@ -171,7 +177,8 @@ def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: fl
                 on_device: bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refined unit normals, their fluid mask and depth from a view's screen-space channels.
 
-    The view goes to the refiner's working scale, upscaled only within ``MAX_WORKING_PIXELS``, and
+    The view goes to the refiner's working scale, upscaled only within ``MAX_WORKING_PIXELS`` and for
+    particles under ``UPSCALE_BELOW_PX``, and
     its output back to the view's size (``pipeline.model.scale``); scale-free inputs need the
     image's focal length in pixels and the particle radius. Pixels whose predicted normal is shorter
     than ``threshold`` are dropped as noise (Choi et al., section 3.3), and so are pixels further from
@@ -198,7 +205,8 @@ def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: fl
         if device_way:  # the filtered depth is on the device already (above)
             source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in (*names.normal, names.raw)}
             source[names.blurred] = blurred
-        view = prepare(source, refiner.spec, focal_px, radius, max_pixels=MAX_WORKING_PIXELS)
+        view = prepare(source, refiner.spec, focal_px, radius, max_pixels=MAX_WORKING_PIXELS,
+                       upscale_below_px=UPSCALE_BELOW_PX)
     with t("network"):
         n = refiner.run(view.inputs, view.fluid)  # 3 x h x w, on the refiner's device (queued on a GPU)
     with t("post"):

@@ -109,14 +109,15 @@ def test_refine_gives_the_rule_of_refined_mask_and_extend_depth():
     normalises only masked pixels; it must give what the separate rules give (``refined_mask``,
     ``extend_depth``, the normalised network output), at a size the working scale changes."""
     from pipeline.masks import REFINED_REACH_PX, refined_mask
-    from pipeline.methods import MAX_WORKING_PIXELS, extend_depth, refine
+    from pipeline.methods import MAX_WORKING_PIXELS, UPSCALE_BELOW_PX, extend_depth, refine
     from pipeline.model.data import input_channels, prepare
     from pipeline.model.scale import resize_normals
 
     refiner, ch, cam = _refine_view()
     names = input_channels(refiner.splat)
     normals, mask, depth = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS)
-    view = prepare(ch, refiner.spec, cam.focal_px, VIEW_RADIUS, max_pixels=MAX_WORKING_PIXELS)
+    view = prepare(ch, refiner.spec, cam.focal_px, VIEW_RADIUS, max_pixels=MAX_WORKING_PIXELS,
+                   upscale_below_px=UPSCALE_BELOW_PX)
     assert view.scale != 1.0, "the view must be resampled for the test to cover the way back"
     raw = resize_normals(refiner(view.inputs, view.fluid), mask.shape)
     fluid = ch[names.fluid] > 0
@@ -194,8 +195,8 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     """``refine`` prepares, resamples and masks only the fluid's part of a view (grown by all that
     reaches a fluid pixel, on the working scale's grid): bit for bit what the whole view gives, at a
     working scale of 1, 1/2 and 2. At 2^(1/2) no part is cut (its grid depends on the image's size).
-    Render time does not upscale (``MAX_WORKING_PIXELS`` 1); a bound that lets it, as
-    ``bench_working_scale.py`` sets, reaches the upscaled scales."""
+    Render time upscales only particles under ``UPSCALE_BELOW_PX``; lifted, the upscaled scales
+    are reached."""
     import pipeline.methods as methods
     from pipeline.camera import Camera, look_at
     from pipeline.config import DatasetConfig
@@ -205,7 +206,7 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     from pipeline.model.inference import load_refiner
     from pipeline.model.scale import working_scale
 
-    monkeypatch.setattr(methods, "MAX_WORKING_PIXELS", 1 << 19)
+    monkeypatch.setattr(methods, "UPSCALE_BELOW_PX", float("inf"))
     from pipeline.parallel import Launcher
     from pipeline.screen import ScreenSpace
     from pipeline.surface import particle_ellipsoids
@@ -227,7 +228,9 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     raw, fluid = ch[names.raw], ch[names.fluid] > 0
     assert working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, methods.MAX_WORKING_PIXELS) == \
         (scale or 2**0.5)
-    assert working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, 1) == min(scale or 2**0.5, 1.0)
+    # with an upscale limit below the particles' size, only a downscale is left
+    no_up = working_scale(raw, cam.focal_px, r, refiner.spec.working_radius_px, upscale_below_px=0.0)
+    assert no_up == min(scale or 2**0.5, 1.0)
     window = refine_window(refiner, raw, fluid, cam.focal_px, r)
     assert (window is None) == (scale is None)
     if window is not None:

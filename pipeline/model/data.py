@@ -17,6 +17,7 @@ the mesh normal (3), the zero vector where the mesh shows no fluid.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -142,9 +143,11 @@ class Prepared:
 
 
 def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | None = None,
-            radius: float | None = None, with_target: bool = False, max_pixels: int = 0) -> Prepared:
+            radius: float | None = None, with_target: bool = False, max_pixels: int = 0,
+            upscale_below_px: float = math.inf) -> Prepared:
     """The generator input of a view's channels (and with ``with_target`` its ``target.N.*``), scaled
-    to the working scale (upscaled within ``max_pixels``, 0: no bound). 'radius' features need the
+    to the working scale (upscaled within ``max_pixels``, 0: no bound, and only particles under
+    ``upscale_below_px``). 'radius' features need the
     image's focal length (px) and the particle radius (the dataset writes both into every view's
     header: ``view_geometry``). The channels may be torch tensors on the refiner's device: the
     input is then made there (``pipeline.vectors``)."""
@@ -157,7 +160,7 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
         raise ValueError("scale-free refiner inputs need the focal length in pixels and the particle radius")
     if spec.features == "radius":
         view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target,
-                          max_pixels)
+                          max_pixels, upscale_below_px)
     else:
         view = ScaledView(as_float32(normal), raw, blurred, raw > 0, 0.0, 1.0, target)
     if not spec.auxiliary:

@@ -44,15 +44,22 @@ MAX_UPSCALE = 4.0
 """Largest factor a frame of small particles is interpolated up by (its cost grows with its square)."""
 
 
-MAX_WORKING_PIXELS = 1
-"""Render and evaluation time: a frame of small particles is interpolated up to the working radius
-only while the fluid's bounding box stays within this many working pixels; 1 never upscales (training
-views are upscaled within ``MAX_UPSCALE``). Chosen on the validation scene alone
-(``benchmarks/tune_inference.py``, the report's rule, misses at 90 degrees): at 256 px, where its
-particles are small enough to be upscaled, no upscale scores 6.32 degrees mean against 6.62 with
-any bound that lets the upscale run (missed 1.00% against 1.41% of the mesh's pixels); at 512 and
-1024 nothing is upscaled. It also keeps tiny particles cheap: an upscale of f costs f^2 in network
-time (``benchmarks/bench_working_scale.py``)."""
+MAX_WORKING_PIXELS = 1 << 19
+"""Render time: a frame of small particles is interpolated up only while the fluid's bounding box
+stays within this many working pixels (half a 1024 x 1024 frame's). Larger frames already show the
+fluid in enough pixels: on the 1M-particle frames of ``benchmarks/bench_working_scale.py`` at
+1920 x 1080 and 960 x 540 (particles 1.9 and 1.0 px) the upscales it stops lowered the mean error
+against the mesh by 0.07 and 0.06 degrees for 2.8 and 2.4 times the refiner's time."""
+
+
+UPSCALE_BELOW_PX = 1.6
+"""Render and evaluation time: a view is interpolated up to the working radius only when its
+particles' median projected radius is below this (px); training views always are (within
+``MAX_UPSCALE``). Chosen on the validation scene alone (``benchmarks/tune_inference.py``, the
+report's rule, misses at 90 degrees): upscaling its particles of 1.2 and 1.5 px (128 and 160 px
+views) lowers the mean error from 8.35 to 7.52 and from 7.25 to 6.72 degrees, while at 1.7 and 2.3
+px (192 and 256 px) it raises it from 6.66 to 6.78 and from 6.32 to 6.62: the upscaled network's
+mask misses more of the mesh's pixels (1.65% against 0.97% at 192 px)."""
 
 
 def fluid_box_pixels(depth) -> int:
@@ -73,15 +80,19 @@ def working_half_octaves(r_px: float, working_radius_px: float) -> int:
     return min(-math.ceil(2.0 * math.log2(r_px / working_radius_px) - 1e-9), round(2 * math.log2(MAX_UPSCALE)))
 
 
-def working_scale(depth, focal_px: float, radius: float, working_radius_px: float, max_pixels: int = 0) -> float:
+def working_scale(depth, focal_px: float, radius: float, working_radius_px: float, max_pixels: int = 0,
+                  upscale_below_px: float = math.inf) -> float:
     """The factor (..., 1/2, 2^-1/2, 1, 2^1/2, 2, ...) that brings the median projected radius into
     (``working_radius_px`` / sqrt 2, ``working_radius_px``], at most ``MAX_UPSCALE`` (1 when there is
-    no fluid or the working radius is 0). With ``max_pixels`` an upscale stops a half octave before
-    the fluid's bounding box would exceed that many pixels (never below 1)."""
+    no fluid or the working radius is 0). A radius of ``upscale_below_px`` or more is not upscaled;
+    with ``max_pixels`` an upscale stops a half octave before the fluid's bounding box would exceed
+    that many pixels (never below 1)."""
     r = median_radius_px(depth, focal_px, radius)
     if working_radius_px <= 0 or r <= 0:
         return 1.0
     half_octaves = working_half_octaves(r, working_radius_px)
+    if r >= upscale_below_px:
+        half_octaves = min(half_octaves, 0)
     if max_pixels and half_octaves > 0:
         box = fluid_box_pixels(depth)
         while half_octaves > 0 and box * 2.0 ** half_octaves > max_pixels:
@@ -139,12 +150,12 @@ class ScaledView:
 
 
 def scale_view(normals, raw, blurred, focal_px: float, radius: float, working_radius_px: float,
-               target=None, max_pixels: int = 0) -> ScaledView:
+               target=None, max_pixels: int = 0, upscale_below_px: float = math.inf) -> ScaledView:
     """A view (normals 3 x H x W, raw and filtered depth H x W, 0 = empty) at the working scale
-    (upscaled within ``max_pixels``: ``working_scale``), with the target normals (3 x H x W, zero
-    vector = empty) averaged alike."""
+    (upscaled within ``max_pixels`` and below ``upscale_below_px``: ``working_scale``), with the
+    target normals (3 x H x W, zero vector = empty) averaged alike."""
     fluid = raw > 0
-    scale = working_scale(raw, focal_px, radius, working_radius_px, max_pixels)
+    scale = working_scale(raw, focal_px, radius, working_radius_px, max_pixels, upscale_below_px)
     if scale == 1.0:
         return ScaledView(as_float32(normals), as_float32(raw), as_float32(blurred), fluid, focal_px, 1.0,
                           None if target is None else as_float32(target))
