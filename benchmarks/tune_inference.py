@@ -3,14 +3,15 @@
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
 than the particles' splat), and at render time views whose particles are smaller than
 ``UPSCALE_BELOW_PX`` are interpolated up to the working radius. Both change what the evaluation
-scores, so they are chosen here on
-the scene that chooses the trainer's best checkpoint (``train.validation_scenes``), never on the
-reported held-out sequences. This prints, for each value of one setting (the other at its default),
-the refined normals' mean and median error over the mesh's pixels (a missed pixel scores 90
-degrees, as in the report), the missed share and IoU, at each size, for both cameras of the
-validation scene.
+scores, so they are chosen here on the scene that chooses the trainer's best checkpoint
+(``train.validation_scenes``), never on the reported held-out sequences. This prints, for each value
+of one setting (the other at its default), the refined normals' mean and median error over the
+mesh's pixels (a missed pixel scores 90 degrees, as in the report), the missed share and IoU, at
+each size, for both cameras of the validation scene.
 
     .venv/bin/python benchmarks/tune_inference.py [--config configs/generalize.yaml] [--sizes 256 512 1024]
+    .venv/bin/python benchmarks/tune_inference.py --sizes 128 160 192 256 512 1024 --reaches 2 3 4 \
+        --below 0 1.6 inf    # the table in docs/evaluation.md
 """
 
 from __future__ import annotations
