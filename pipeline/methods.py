@@ -178,9 +178,9 @@ def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: fl
     """Refined unit normals, their fluid mask and depth from a view's screen-space channels.
 
     The view goes to the refiner's working scale, upscaled only within ``MAX_WORKING_PIXELS`` and for
-    particles under ``UPSCALE_BELOW_PX``, and
-    its output back to the view's size (``pipeline.model.scale``); scale-free inputs need the
-    image's focal length in pixels and the particle radius. Pixels whose predicted normal is shorter
+    particles under ``UPSCALE_BELOW_PX``, and its output back to the view's size
+    (``pipeline.model.scale``); scale-free inputs need the image's focal length in pixels and the
+    particle radius. Pixels whose predicted normal is shorter
     than ``threshold`` are dropped as noise (Choi et al., section 3.3), and so are pixels further from
     the splat's fluid than ``REFINED_REACH_PX`` working pixels (the reference surface is wider than
     the splat; its depth there is the nearest splat pixel's: ``extend_depth``, here from the same distance transform as

@@ -7,7 +7,7 @@ import numpy as np
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import DatasetConfig
-from pipeline.evaluate.temporal import _world, surface_flow, temporal_errors
+from pipeline.evaluate.temporal import _world, normal_change, surface_flow, temporal_errors
 from pipeline.metrics import angular_errors
 
 R = 0.02
@@ -47,18 +47,19 @@ def test_a_translated_ball_is_followed_and_a_method_scored_against_the_reference
     np.testing.assert_allclose(shift, expected, rtol=0.06)
     assert np.abs((flow.rows - rr)[flow.valid]).max() < 1.0
     # the reference against itself: no error, every followed pixel scored
-    same, missed = temporal_errors(flow, (n0, m0), (n1, m1), n0, n1, cam, cam)
+    truth = normal_change(flow, n0, n1, m1, cam, cam)
+    same, missed = temporal_errors(flow, (n0, m0), (n1, m1), truth, cam, cam)
     assert missed == 0 and same.size == flow.valid.sum() and same.max() < 1e-5
     # a method that does not move with the fluid changes where the reference does not
-    still, _ = temporal_errors(flow, (n0, m0), (n0, m0), n0, n1, cam, cam)
+    still, _ = temporal_errors(flow, (n0, m0), (n0, m0), truth, cam, cam)
     assert np.median(still) > 5.0
     # a method that turns its normals over from one frame to the next: 180 degrees
-    flipped, _ = temporal_errors(flow, (n0, m0), (-n1, m1), n0, n1, cam, cam)
+    flipped, _ = temporal_errors(flow, (n0, m0), (-n1, m1), truth, cam, cam)
     np.testing.assert_allclose(flipped, 180.0, atol=0.5)
     # pixels a method does not show at t+1 are counted apart, not scored
     holed = m1.copy()
     holed[:, : SIZE // 2] = False
-    part, missed = temporal_errors(flow, (n0, m0), (n1, holed), n0, n1, cam, cam)
+    part, missed = temporal_errors(flow, (n0, m0), (n1, holed), truth, cam, cam)
     assert missed > 0 and part.size + missed == flow.valid.sum()
 
 

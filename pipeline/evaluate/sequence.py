@@ -21,7 +21,7 @@ from tqdm import tqdm
 from pipeline.camera import camera_for_frame
 from pipeline.config import Config, SceneConfig
 from pipeline.device import warp_device
-from pipeline.evaluate.temporal import surface_flow, temporal_errors
+from pipeline.evaluate.temporal import normal_change, surface_flow, temporal_errors
 from pipeline.exr import read_exr, stack
 from pipeline.frames import frame_name, load_frame, spread
 from pipeline.methods import method_maps, normal_source, refine, shade_frame
@@ -145,11 +145,12 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
 
 def _score_change(ss: ScreenSpace, before: dict, after: dict, methods, radius: float, scores: dict) -> None:
     """Each method's per-pixel temporal errors from one evaluated frame to the next."""
-    flow = surface_flow(ss, before["x"], after["x"], radius, before["cam"], after["cam"], before["depth"],
-                        before["t_mask"], after["depth"], after["t_mask"])
+    cams = before["cam"], after["cam"]
+    flow = surface_flow(ss, before["x"], after["x"], radius, *cams, before["depth"], before["t_mask"], after["depth"],
+                        after["t_mask"])
+    truth = normal_change(flow, before["target"], after["target"], after["t_mask"], *cams)
     for m in methods:
-        e, missed = temporal_errors(flow, before["maps"][m][:2], after["maps"][m][:2], before["target"],
-                                    after["target"], before["cam"], after["cam"])
+        e, missed = temporal_errors(flow, before["maps"][m][:2], after["maps"][m][:2], truth, *cams)
         scores["temporal"][m].append(e)
         scores["temporal_missed"][m].append(missed)
 
@@ -215,9 +216,9 @@ def aggregate(results: list[dict], methods) -> dict:
         for k in ("iou", "psnr", "ssim", "flicker_deg", "ms_per_frame"):
             table[m][k] = float(np.nanmean([row[k] for row in rows]))
         # per-pixel temporal error: pixel-weighted over the sequences of more than one frame
-        w = np.array([row.get("temporal_pixels", 0) for row in rows], float)
-        table[m]["temporal_deg"] = (float(np.nansum([row["temporal_deg"] * wi for row, wi in zip(rows, w, strict=True)
-                                                     if wi > 0]) / w.sum()) if w.sum() else float("nan"))
+        w = np.array([row["temporal_pixels"] for row in rows], float)
+        table[m]["temporal_deg"] = (sum(row["temporal_deg"] * wi for row, wi in zip(rows, w, strict=True) if wi)
+                                    / w.sum() if w.sum() else float("nan"))
     if "metaball" in methods:  # against its own ray-marched surface
         rows = [r["methods"]["metaball"] for r in results]
         w = np.array([row["own_pixels"] for row in rows], float)

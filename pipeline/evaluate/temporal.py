@@ -13,6 +13,7 @@ scores the mesh's change; one that flickers where the mesh holds still scores it
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -32,6 +33,7 @@ class Flow:
     cols: np.ndarray   # H x W target column
     valid: np.ndarray  # pixels on the reference surface at both frames
 
+    @cached_property
     def nearest(self) -> tuple[np.ndarray, np.ndarray]:
         """The target pixels' (rows, columns), rounded."""
         return np.rint(self.rows).astype(np.int64), np.rint(self.cols).astype(np.int64)
@@ -70,7 +72,7 @@ def surface_flow(ss: ScreenSpace, x0: np.ndarray, x1: np.ndarray, radius: float,
     rows, cols = rr + motion[..., 1].astype(np.float64), cc + motion[..., 0].astype(np.float64)
     inside = (rows > -0.5) & (rows < h - 0.5) & (cols > -0.5) & (cols < w - 0.5)
     flow = Flow(np.where(inside, rows, 0.0), np.where(inside, cols, 0.0), inside)
-    r, c = flow.nearest()
+    r, c = flow.nearest
     expected = depth0 + motion[..., 2]
     lands = mask1[r, c] & (np.abs(depth1[r, c] - expected) < DEPTH_TOLERANCE_RADII * radius)
     return Flow(flow.rows, flow.cols, mask0 & covered & inside & lands)
@@ -86,17 +88,21 @@ def _world(normals: np.ndarray, cam: Camera) -> np.ndarray:
     return _unit(normals.astype(np.float64) @ cam.view[:3, :3])
 
 
+def normal_change(flow: Flow, normals: np.ndarray, next_normals: np.ndarray, next_mask: np.ndarray, cam0: Camera,
+                  cam1: Camera) -> np.ndarray:
+    """H x W x 3: each pixel's change of world normal from t (view ``normals`` under ``cam0``) to
+    where it lands at t+1 (``next_normals`` under ``cam1``, sampled within ``next_mask``)."""
+    return _unit(flow.sample(_world(next_normals, cam1), next_mask)) - _world(normals, cam0)
+
+
 def temporal_errors(flow: Flow, method: tuple[np.ndarray, np.ndarray], next_method: tuple[np.ndarray, np.ndarray],
-                    reference: np.ndarray, next_reference: np.ndarray, cam0: Camera, cam1: Camera
-                    ) -> tuple[np.ndarray, int]:
-    """Temporal errors (degrees) of a method, given as (view normals, mask) at t and t+1, over the
-    followed pixels where it shows fluid at both ends, and the number of followed pixels where it
-    does not (reported apart: a change cannot be scored where there is no normal)."""
+                    reference_change: np.ndarray, cam0: Camera, cam1: Camera) -> tuple[np.ndarray, int]:
+    """Temporal errors (degrees) of a method, given as (view normals, mask) at t and t+1, against the
+    reference's ``normal_change``, over the followed pixels where the method shows fluid at both
+    ends, and the number of followed pixels where it does not (reported apart: a change cannot be
+    scored where there is no normal)."""
     (n0, m0), (n1, m1) = method, next_method
-    r, c = flow.nearest()
+    r, c = flow.nearest
     shown = flow.valid & m0 & m1[r, c]
-    reference_mask = np.linalg.norm(next_reference, axis=-1) > 0
-    change = _unit(flow.sample(_world(n1, cam1), m1)[shown]) - _world(n0, cam0)[shown]
-    truth = _unit(flow.sample(_world(next_reference, cam1), reference_mask)[shown]) - _world(reference, cam0)[shown]
-    gap = np.linalg.norm(change - truth, axis=-1)
+    gap = np.linalg.norm(normal_change(flow, n0, n1, m1, cam0, cam1)[shown] - reference_change[shown], axis=-1)
     return np.degrees(2 * np.arcsin(np.clip(gap / 2, 0.0, 1.0))), int((flow.valid & ~shown).sum())

@@ -147,10 +147,9 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
             upscale_below_px: float = math.inf) -> Prepared:
     """The generator input of a view's channels (and with ``with_target`` its ``target.N.*``), scaled
     to the working scale (upscaled within ``max_pixels``, 0: no bound, and only particles under
-    ``upscale_below_px``). 'radius' features need the
-    image's focal length (px) and the particle radius (the dataset writes both into every view's
-    header: ``view_geometry``). The channels may be torch tensors on the refiner's device: the
-    input is then made there (``pipeline.vectors``)."""
+    ``upscale_below_px``). 'radius' features need the image's focal length (px) and the particle
+    radius (the dataset writes both into every view's header: ``view_geometry``). The channels may
+    be torch tensors on the refiner's device: the input is then made there (``pipeline.vectors``)."""
     names = input_channels(spec.splat)
     raw, blurred = channels[names.raw], channels[names.blurred]
     x = xp(raw)
