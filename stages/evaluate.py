@@ -64,7 +64,8 @@ def main(opts: StageOptions) -> None:
     runs = sized_runs(opts)
     run = runs[0]
     methods = tuple(run.config.evaluate.methods)
-    refiner, metaball, weights = render.networks(run, methods)
+    # 'trained' weights come from the config's own training views, not from one evaluated size's
+    refiner, metaball, weights = render.networks(make_run(opts) if run.config.evaluate.sizes else run, methods)
     groups = [(r, sequences(r)) for r in runs]
     keys = {f"{r.config.dataset.width}/{s.scene.name}/{s.camera}": dataset.ensure(r, s.scene).key
             for r, group in groups for s in group}

@@ -171,6 +171,31 @@ def test_evaluate_smoke(tmp_path):
     assert (entry / "methods.png").exists() and (entry / "examples.png").exists()
 
 
+def test_evaluated_sizes_do_not_change_the_views_trained_weights_come_from(tmp_path, monkeypatch):
+    """``render.weights: trained`` with ``evaluate.sizes``: the refiner is the one the config's own
+    training views make (64 px here), not one trained on an evaluated size's views."""
+    from stages import train
+
+    checkpoint = _tiny_checkpoint(tmp_path)
+    widths = []
+
+    class Entry:
+        def path(self, name):
+            return checkpoint
+
+    def ensure(run, force=False):
+        widths.append(run.config.dataset.width)
+        return Entry()
+
+    monkeypatch.setattr(train, "ensure", ensure)
+    config = _config(tmp_path, "trained")
+    body = yaml.safe_load(open(config))
+    body["evaluate"].update({"sizes": [96], "methods": ["nrf", "refined"], "imported_scenes": []})
+    open(config, "w").write(yaml.safe_dump(body))
+    assert cli.main(["evaluate", "--config", config]) == 0
+    assert widths == [64]
+
+
 def test_a_render_killed_between_its_exr_and_preview_resumes(tmp_path):
     """Outputs are written on a background thread; a frame counts as done only when its EXR and its
     preview (and comparison) all exist, so a frame whose preview is missing is redone, not stuck."""
