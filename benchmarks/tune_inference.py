@@ -1,17 +1,18 @@
-"""The refined method's two inference settings, chosen on the validation scene only.
+"""The refined method's inference settings, chosen on the validation scene only.
 
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
-than the particles' splat), and at render time views whose particles are smaller than
-``UPSCALE_BELOW_PX`` are interpolated up to the working radius. Both change what the evaluation
-scores, so they are chosen here on the scene that chooses the trainer's best checkpoint
-(``train.validation_scenes``), never on the reported held-out sequences. This prints, for each value
-of one setting (the other at its default), the refined normals' mean and median error over the
+than the particles' splat), at render time views whose particles are smaller than
+``UPSCALE_BELOW_PX`` are interpolated up to the working radius, and the network may run in
+bfloat16 (``render.refiner_precision``). All three change what the evaluation scores, so they are
+chosen here on the scene that chooses the trainer's best checkpoint (``train.validation_scenes``),
+never on the reported held-out sequences. This prints, for each value of one setting (the others at
+their defaults), the refined normals' mean and median error over the
 mesh's pixels (a missed pixel scores 90 degrees, as in the report), the missed share and IoU, at
 each size, for both cameras of the validation scene.
 
     .venv/bin/python benchmarks/tune_inference.py [--config configs/generalize.yaml] [--sizes 256 512 1024]
     .venv/bin/python benchmarks/tune_inference.py --sizes 128 160 192 256 512 1024 --reaches 2 3 4 \
-        --below 0 1.6 inf    # the table in docs/evaluation.md
+        --below 0 1.6 inf --precisions float32 bfloat16    # the table in docs/evaluation.md
 """
 
 from __future__ import annotations
@@ -45,15 +46,19 @@ def main() -> None:
     parser.add_argument("--reaches", type=int, nargs="+", default=[0, 1, 2, 3, 4, 6])
     parser.add_argument("--below", type=float, nargs="+", default=[0.0, 0.8, 1.0, 1.25, 1.5, float("inf")],
                         help="UPSCALE_BELOW_PX values (0: never upscale, inf: always)")
+    parser.add_argument("--precisions", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16"])
     args = parser.parse_args()
     wp.config.quiet = True
     defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX}
-    settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below])
+    settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below]
+                + [("precision", v) for v in args.precisions])
     scores: dict = {}
     radii: dict[int, list[float]] = {}
     for size in args.sizes:
         run = make_run(StageOptions(config=args.config), {"dataset": {"width": size, "height": size}})
-        refiner = render.networks(run, ("refined",))[0]
+        refiners = {p: render.networks(make_run(StageOptions(config=args.config), {
+            "dataset": {"width": size, "height": size}, "render": {"refiner_precision": p}}), ("refined",))[0]
+            for p in ("auto", *args.precisions)}
         threshold = run.config.render.normal_threshold
         for name in run.config.train.validation_scenes:
             scene = run.loaded.scenes[name]
@@ -69,6 +74,7 @@ def main() -> None:
                     for key, value in settings:
                         methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
                         methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
+                        refiner = refiners[value if key == "precision" else "auto"]
                         n, mask, _ = methods.refine(refiner, ch, threshold, cam.focal_px, radius)
                         e, _, missed = errors_over_reference(n, target, mask, t_mask)
                         got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
@@ -78,8 +84,9 @@ def main() -> None:
         print(f"  {size} px done", flush=True)
     methods.REFINED_REACH_PX, methods.UPSCALE_BELOW_PX = defaults["reach"], defaults["below"]
     print(f"\nvalidation scenes of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
-          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale below {defaults['below']:g} px")
-    print(f"{'setting':>14s}" + "".join(f" {f'{s} px (particles {np.median(radii[s]):.1f} px)':>30s}"
+          f"missed, IoU; defaults: reach {defaults['reach']} px, upscale below {defaults['below']:g} px, "
+          f"precision {str(refiners['auto'].dtype).removeprefix('torch.')}")
+    print(f"{'setting':>18s}" + "".join(f" {f'{s} px (particles {np.median(radii[s]):.1f} px)':>30s}"
                                         for s in args.sizes) + f" {'avg mean':>9s}")
     for key, value in settings:
         cells, means = "", []
@@ -89,7 +96,8 @@ def main() -> None:
             means.append(float(e.mean()))
             cells += (f" {e.mean():6.2f} / {np.median(e):5.2f} {100 * got['missed'] / e.size:5.2f}% "
                       f"{np.mean(got['iou']):.3f}")
-        print(f"{f'{key} {value:g}':>14s}{cells} {np.mean(means):9.2f}")
+        label = f"{key} {value}" if isinstance(value, str) else f"{key} {value:g}"
+        print(f"{label:>18s}{cells} {np.mean(means):9.2f}")
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ def load_refiner(run: Run):
         path = train.ensure(run).path("best.pt")
     else:
         path = SHIPPED_WEIGHTS if choice == "shipped" else Path(choice)
-    return load_weights(path, run.device)
+    return load_weights(path, run.device, run.config.render.refiner_precision)
 
 
 def load_metaball(run: Run):

@@ -261,3 +261,26 @@ def test_weights_that_are_not_the_ones_their_card_records_are_refused(tmp_path):
         load_weights(pt)
     card.unlink()  # a checkpoint without a card (a trained one) is taken as it is
     load_weights(pt)
+
+
+def test_bfloat16_refiner_stays_within_rounding_of_float32():
+    """The bfloat16 network (``render.refiner_precision``) keeps float32 weights' answer up to
+    rounding: the same mask but for a few edge pixels, normals a fraction of a degree apart, and
+    float32 maps out. A wrong cast (weights left in float32, input in bfloat16, or the output left
+    in bfloat16) fails or drifts by degrees."""
+    from pipeline.methods import refine
+    from pipeline.model import SHIPPED_WEIGHTS
+    from pipeline.model.inference import load_refiner
+
+    refiner, ch, cam = _refine_view()
+    out = {p: refine(load_refiner(SHIPPED_WEIGHTS, precision=p), ch, 0.5, cam.focal_px, VIEW_RADIUS)
+           for p in ("float32", "bfloat16")}
+    assert load_refiner(SHIPPED_WEIGHTS, precision="bfloat16").net.head.weight.dtype == torch.bfloat16
+    (n32, m32, z32), (n16, m16, z16) = out["float32"], out["bfloat16"]
+    assert n16.dtype == np.float32 and m32.sum() > 500
+    assert (m32 != m16).mean() < 0.002
+    both = m32 & m16
+    angle = np.degrees(np.arccos(np.clip(np.sum(n32[both] * n16[both], -1), -1, 1)))
+    assert np.median(angle) < 0.3 and angle.mean() < 0.6, (np.median(angle), angle.mean())
+    assert angle.max() > 0, "bfloat16 must actually round"
+    np.testing.assert_array_equal(z16[both], z32[both])
