@@ -531,9 +531,15 @@ class MetaballConfig:
     ball centre and spans ``depth_span`` (the thesis' 7 to 25 units). Lengths below are in those
     working units unless they say radii."""
 
-    ball_radius_radii: float = Field(1.0, gt=0.0)
+    ball_radius_radii: float = Field(1.4, gt=0.0)
     """A particle's metaball radius in particle radii (an isolated ball's surface has radius
-    ball radius / sqrt(iso_level))."""
+    ball radius / sqrt(iso_level)). 1.4 on the ellipsoids and 1.0 on spheres came closest to the
+    mesh on the validation scene (docs/metaball.md)."""
+    anisotropic: bool = True
+    """The balls are the particles' ellipsoids: the mesh's anisotropic kernels (Yu & Turk: smoothed
+    centres, flattened along the surface; ``dataset.aniso_*``) scaled by ``ball_radius_radii``, so
+    the blended surface follows the mesh's instead of bulging between particles. False: spheres at
+    the particles (the thesis')."""
     iso_level: float = Field(1.0, gt=0.0)
     """Iso-level of the surface sum r^2 / d^2 = iso_level (the thesis' 1)."""
     kernel_radius_radii: float = Field(4.0, ge=0.0)
@@ -556,9 +562,11 @@ class MetaballConfig:
     """What the generator sees: the balls as exactly splatted spheres with the layer behind them
     (``sphere_input``) whose normals are the metaball field's at the front sphere (``field``) or the
     spheres' own (``spheres``), or the thesis' circle outlines with a centre-depth code (``circles``)."""
-    splat_radius: float = Field(1.5, gt=0.0)
-    """Radius of the splatted spheres, in minimal radii (an isolated ball's surface): the blend
-    swells the surface beyond the balls, so a larger sphere starts nearer to it."""
+    splat_radius: float = Field(0.8, gt=0.0)
+    """Radius of the splatted spheres, in minimal radii (an isolated ball's surface). On spheres the
+    blend swells the surface beyond the balls, so a larger sphere (1.5) starts nearer to it; the
+    ellipsoids' surface lies inside their bounding spheres, where 0.8 started nearest on the
+    validation scene (docs/metaball.md)."""
     field_steps: int = Field(2, ge=0)
     """With ``input: field``: Newton steps along each ray from the front sphere towards the
     iso-surface before the field's normal is taken (each costs one more field sample a pixel)."""

@@ -20,6 +20,7 @@ import warp as wp
 from pipeline.camera import Camera
 from pipeline.config import METHODS, DatasetConfig, RenderConfig
 from pipeline.device import on_torch_stream
+from pipeline.ellipsoids import Ellipsoids
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.masks import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
 from pipeline.metaball.inference import MetaballNet
@@ -302,19 +303,30 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         own normals and depth (metaballs, the mesh)."""
         return sphere_inputs()["thickness"]
 
-    if method == "metaball":
-        if metaball is None:
-            raise ValueError("the metaball method needs a metaball generator")
-        with t("metaball"):
-            g = metaball.gbuffers(positions, radius, camera, launch)
-        return {"normals": g["normals"], "depth": g["depth"], "mask": g["mask"], "thickness": sphere_thickness()}
-
     def kernels():
         if "kernels" not in cache:
             with t("anisotropy"):
                 cache["kernels"] = anisotropic_kernels(np.asarray(positions, np.float32), radius, filters, launch,
                                                        ss.device)
         return cache["kernels"]
+
+    def camera_ellipsoids(on_device: bool | None = None) -> Ellipsoids:
+        """The particles' ellipsoids for this camera: from the frame's kernels when they were made,
+        else from the anisotropy of the particles it sees (``seen_kernels``)."""
+        if "kernels" not in cache and cache.get("seen_kernels", (None,))[0] is not camera:
+            with t("anisotropy"):
+                cache["seen_kernels"] = (camera, *seen_kernels(np.asarray(positions, np.float32), radius, filters,
+                                                               camera, launch, ss.device))
+        kernels_here = cache["kernels"] if "kernels" in cache else cache["seen_kernels"][1]
+        return particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels_here, on_device)
+
+    if method == "metaball":
+        if metaball is None:
+            raise ValueError("the metaball method needs a metaball generator")
+        ellipsoids = camera_ellipsoids(on_device=False) if metaball.config.anisotropic else None
+        with t("metaball"):
+            g = metaball.gbuffers(positions, radius, camera, launch, ellipsoids)
+        return {"normals": g["normals"], "depth": g["depth"], "mask": g["mask"], "thickness": sphere_thickness()}
 
     if method == "mesh":
         with t("mesh"):
@@ -327,12 +339,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
         return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": sphere_thickness()}
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
-        if "kernels" not in cache and cache.get("seen_kernels", (None,))[0] is not camera:
-            with t("anisotropy"):
-                cache["seen_kernels"] = (camera, *seen_kernels(np.asarray(positions, np.float32), radius, filters,
-                                                               camera, launch, ss.device))
-        kernels_here = cache["kernels"] if "kernels" in cache else cache["seen_kernels"][1]
-        ellipsoids = particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels_here)
+        ellipsoids = camera_ellipsoids()
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):

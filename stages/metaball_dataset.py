@@ -24,8 +24,9 @@ log = logging.getLogger("deep_ssfr")
 RANDOM_SETS = "random_sets"
 """Entry name of the thesis' random ball sets."""
 
-_VIEW_KEYS = ("random_radius_px", "random_fov_deg", "random_elevation_deg")
-"""The dataset's random-camera ranges, which the fluid views share."""
+_VIEW_KEYS = ("random_radius_px", "random_fov_deg", "random_elevation_deg", "aniso_smoothing", "aniso_kr",
+              "aniso_ks", "aniso_kn", "aniso_neps", "aniso_kernel_radius")
+"""The dataset's random-camera ranges and anisotropy (the ellipsoids), which the fluid views share."""
 
 
 def roles(run: Run) -> tuple[list[SceneConfig], list[SceneConfig]]:
@@ -44,7 +45,7 @@ def roles(run: Run) -> tuple[list[SceneConfig], list[SceneConfig]]:
 VIEW_FIELDS = ("ball_radius_radii", "iso_level", "kernel_radius_radii", "working_ball_radius", "depth_margin",
                "depth_span", "step", "bisections", "outline_width", "outline_min_px", "input", "splat_radius",
                "field_steps", "working_radius_px", "size", "frame_stride", "max_frames", "views_per_frame",
-               "random_sets", "repeats", "max_balls", "seed")
+               "random_sets", "repeats", "max_balls", "seed", "anisotropic")
 """The ``metaball`` keys the views depend on (the network's and training's keys change none of them)."""
 
 

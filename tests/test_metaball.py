@@ -100,6 +100,40 @@ def test_one_ball_is_the_sphere_of_radius_r_over_sqrt_iso(launch, iso, k):
     assert not out["depth"][~mask].any() and not out["normals"][~mask].any() and not out["colour"][~mask].any()
 
 
+@pytest.mark.parametrize("iso, k", [(1.0, 4.0), (2.0, 0.0)])
+def test_one_ellipsoidal_ball_is_its_ellipsoid_scaled_by_one_over_sqrt_iso(launch, iso, k):
+    """A ball with a shape map A (the anisotropic metaballs' term 1 / |A (X - P)|^2) is the ellipsoid
+    |A (X - P)| = 1 / sqrt(iso): depth and normal A^T A (X - P) as the closed form gives them; and
+    A = I / r is the sphere of radius r to float rounding."""
+    p = MetaballParams(iso_level=iso, kernel_radius_radii=k)
+    centre = np.array([0.4, -0.2, 0.3])
+    turn = np.linalg.qr(np.random.default_rng(4).normal(size=(3, 3)))[0]
+    semi = np.array([1.6, 0.5, 1.0])
+    a = np.diag(1.0 / semi) @ turn.T  # maps the ellipsoid of those semi-axes along turn's columns onto the unit ball
+    cam = Camera(look_at((3.0, 2.5, 14.0), centre), 18.0, 72, 56)
+    out = metaball_targets(centre[None], semi.max(), cam, p, launch, shapes=a[None])
+
+    rays = _world_rays(cam)
+    o, d = a @ (cam.eye - centre), rays @ a.T
+    qa, qb = (d * d).sum(-1), d @ o
+    disc = qb * qb - qa * (o @ o - 1.0 / iso)
+    hit = disc > 0
+    t = (-qb - np.sqrt(np.where(hit, disc, 0.0))) / qa
+    mask = out["mask"] > 0
+    assert hit[mask].all() and mask.sum() > 0.95 * hit.sum() > 200
+    assert (np.abs(out["depth"] - t)[mask] <= 4 * _depth_tolerance(p, t[mask])).all()
+    x = cam.eye + rays * t[..., None]
+    n = (x - centre) @ (a.T @ a).T
+    n_ref = (n / np.linalg.norm(n, axis=-1, keepdims=True)) @ cam.view[:3, :3].T
+    assert np.degrees(np.arccos(np.clip((out["normals"] * n_ref).sum(-1)[mask], -1, 1))).max() < 0.05
+
+    sphere = metaball_targets(centre[None], 1.3, cam, p, launch)
+    shaped = metaball_targets(centre[None], 1.3, cam, p, launch, shapes=(np.eye(3) / 1.3)[None])
+    assert (sphere["mask"] == shaped["mask"]).all() and sphere["mask"].sum() > 300
+    np.testing.assert_allclose(shaped["depth"], sphere["depth"], atol=1e-4)
+    np.testing.assert_allclose(shaped["normals"], sphere["normals"], atol=1e-4)
+
+
 @pytest.mark.parametrize("k", [4.0, 0.0])
 def test_two_balls_merge_where_the_summed_field_reaches_the_iso_level(launch, k):
     p = MetaballParams(kernel_radius_radii=k)

@@ -22,7 +22,8 @@ from pipeline.parallel import Launcher
 from stages import cli
 from tests.conftest import ROOT
 
-SMALL = MetaballConfig(base_channels=4, disc_base_channels=4, batch_size=2, epochs=2, step=0.01, crop=32)
+SMALL = MetaballConfig(base_channels=4, disc_base_channels=4, batch_size=2, epochs=2, step=0.01, crop=32,
+                       anisotropic=False, ball_radius_radii=1.0, splat_radius=1.5)
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +60,35 @@ def test_the_working_frame_does_not_depend_on_the_scene_scale(launch):
     assert nearest - 3 * r < ta["depth"][both].min() < nearest
     codes = a.depth_code(ta["depth"][both])
     np.testing.assert_allclose(a.depth_of(codes), ta["depth"][both], rtol=1e-5)
+
+
+def test_ellipsoidal_balls_reach_the_working_frame_turned_and_scaled_with_it(launch):
+    """Anisotropic metaballs: their world shape maps follow the balls into the camera's frame, so
+    the same ellipsoids three times larger and further away give the same field input and normals,
+    and the working view's surface is the world ellipsoids' surface seen by the camera."""
+    from pipeline.ellipsoids import Ellipsoids
+    from pipeline.metaball import metaball_targets
+
+    x, r = _balls(20)
+    rng = np.random.default_rng(8)
+    turns = np.linalg.qr(rng.normal(size=(20, 3, 3)))[0]
+    shapes = np.diag(1.0 / np.array([1.5, 0.5, 1.0])) @ np.swapaxes(turns, 1, 2) / r
+    eye = np.array([0.05, 0.04, -0.72])
+    cam = Camera(look_at(eye, (0.0, 0.0, -1.0)), 40.0, 128, 128)
+    m = MetaballConfig(step=0.01, ball_radius_radii=1.0)
+    a = fluid_view(x, r, cam, m, Ellipsoids(x, shapes, np.full(20, 1.5 * r)))
+    b = fluid_view(eye + 3.0 * (x - eye), 3.0 * r, cam, m,
+                   Ellipsoids(eye + 3.0 * (x - eye), shapes / 3.0, np.full(20, 4.5 * r)))
+    np.testing.assert_allclose(a.shapes, b.shapes, rtol=1e-9)
+    np.testing.assert_allclose(a.inputs("field", launch), b.inputs("field", launch), atol=1e-4)
+    ta = a.targets(launch, own_size=True)
+    world = metaball_targets(x, r, cam, a.params.__class__(step=0.01 * r / m.working_ball_radius, depth_near=0.01,
+                                                           depth_far=10.0), launch, shapes=shapes)
+    both = (ta["mask"] > 0) & (world["mask"] > 0)
+    assert both.sum() > 100 and (ta["mask"] == world["mask"]).mean() > 0.995
+    # the same surface but where a grazing ray's steps fall differently (1 pixel in thousands)
+    assert np.isclose(ta["depth"][both], world["depth"][both], rtol=1e-3).mean() > 0.999
+    assert np.median(np.degrees(np.arccos(np.clip((ta["normals"] * world["normals"]).sum(-1)[both], -1, 1)))) < 0.1
 
 
 def test_the_working_scale_draws_every_resolution_at_one_ball_size(launch):
@@ -205,19 +235,25 @@ def test_training_pair_encodes_what_was_rendered(views):
 def test_the_field_input_gives_the_blended_surface_orientation(launch):
     """On a block of fluid-spaced balls, the field's normal a Newton step from the front of the larger
     spheres is within a few degrees of the ray-marched surface's, where the spheres' own normals are
-    tens of degrees off (the blend smooths them away)."""
+    tens of degrees off (the blend smooths them away); so on the block's ellipsoids."""
+    from pipeline.config import DatasetConfig
+    from pipeline.surface import particle_ellipsoids
+
     g = np.arange(8) * 0.04
     x = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + np.array([-0.14, -0.14, -1.2])
     cam = Camera(look_at((0.5, 0.4, 0.0), (0.0, 0.0, -1.06)), 40.0, 256, 256)
+    ellipsoids = particle_ellipsoids(x.astype(np.float32), 0.02, DatasetConfig(), launch)
+    spheres = {"anisotropic": False, "ball_radius_radii": 1.0}
     errors = {}
-    for name, m in {"field": MetaballConfig(), "spheres": MetaballConfig(input="spheres", splat_radius=1.0)}.items():
-        view = fluid_view(x, 0.02, cam, m)
+    for name, m in {"field": MetaballConfig(splat_radius=1.5, **spheres), "ellipsoids": MetaballConfig(),
+                    "spheres": MetaballConfig(input="spheres", splat_radius=1.0, **spheres)}.items():
+        view = fluid_view(x, 0.02, cam, m, ellipsoids)
         target, layers = view.targets(launch), view.layers(launch)
         both = (target["mask"] > 0) & (layers["front"] > 0)
         assert both.sum() > 0.9 * (target["mask"] > 0).sum()
         cos = (layers["normals"] * target["normals"]).sum(-1)[both]
         errors[name] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean())
-    assert errors["field"] < 5.0 and errors["spheres"] > 20.0, errors
+    assert errors["field"] < 5.0 and errors["ellipsoids"] < 5.0 and errors["spheres"] > 20.0, errors
 
 
 def test_metaball_is_a_method_and_bad_method_names_are_config_errors(tmp_path):

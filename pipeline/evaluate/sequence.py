@@ -31,6 +31,7 @@ from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.shading import Shader, tonemap
 from pipeline.shading.background import BackgroundRenderer, Surroundings
+from pipeline.surface import particle_ellipsoids
 from pipeline.timing import Timings
 
 TIMED_FRAMES = 3
@@ -92,10 +93,12 @@ def evaluate_sequence(seq: HeldOut, config: Config, refiner, methods: tuple[str,
                     for m in (*methods, "mesh") if m != "metaball"}
             x, _ = load_frame(seq.sim_dir / frame_name(r["frame"]))
             if "metaball" in methods:
-                g = metaball.gbuffers(x, seq.particle_radius, cam, launch)
+                ell = (particle_ellipsoids(x, seq.particle_radius, config.dataset, launch)
+                       if metaball.config.anisotropic else None)
+                g = metaball.gbuffers(x, seq.particle_radius, cam, launch, ell)
                 maps["metaball"] = (g["normals"], g["mask"] > 0, g["depth"])
                 if k % config.metaball.target_stride == 0:
-                    surface = metaball.targets(x, seq.particle_radius, cam, launch)
+                    surface = metaball.targets(x, seq.particle_radius, cam, launch, ell)
                     on = surface["mask"] > 0
                     own["errors"].append(angular_errors(g["normals"], surface["normals"], (g["mask"] > 0) & on))
                     own["iou"].append(iou(g["mask"] > 0, on))

@@ -4,7 +4,8 @@ Fluid views: each chosen frame of a scene seen from ``metaball.views_per_frame``
 (``pipeline.camera.random_view`` at ``metaball.size``, the dataset's field of view and elevation
 ranges, particles within half an octave of ``metaball.working_radius_px`` on screen, or the dataset's
 range without a working radius), its particles as metaballs in the working frame
-(``pipeline.metaball.views``), drawn at the working scale. Random sets: the thesis' random balls,
+(``pipeline.metaball.views``; with ``metaball.anisotropic`` the particles' ellipsoids), drawn at the
+working scale. Random sets: the thesis' random balls,
 each rendered ``metaball.repeats`` times with small offsets. Every EXR holds ``view_channels`` (the
 target depth in scene units) and, in its header, the camera, ``metaballScale`` and the depth code's
 ``metaballNear`` / ``metaballFar`` (working units), from which ``training_pair`` encodes the target.
@@ -37,6 +38,7 @@ from pipeline.metaball.views import (
     working_view,
 )
 from pipeline.parallel import Launcher, init_warp
+from pipeline.surface import particle_ellipsoids
 
 
 def fluid_view_name(frame: int, view: int) -> str:
@@ -98,14 +100,24 @@ def build_fluid_views(folder: Path, scene: str, frames: list[int], load: Callabl
                       m: MetaballConfig, d: DatasetConfig, device: str, workers: int) -> list[dict]:
     """Write every fluid view not yet written (a killed run resumes); returns the manifest records."""
     records, jobs = [], []
-    for frame in frames:
-        x = load(frame)
-        for k, cam in enumerate(fluid_cameras(scene, frame, x, radius, m, d)):
-            path = folder / fluid_view_name(frame, k)
-            records.append({"file": path.name, "frame": frame, "view": k})
-            if not path.exists():
-                jobs.append(lambda launch, x=x, cam=cam, path=path: write_view(
-                    path, fluid_view(x, radius, cam, m), cam, launch, radius, m.input))
+    launch = Launcher(device) if m.anisotropic else None
+    try:
+        for frame in frames:
+            x = load(frame)
+            cams = fluid_cameras(scene, frame, x, radius, m, d)
+            paths = [folder / fluid_view_name(frame, k) for k in range(len(cams))]
+            records += [{"file": path.name, "frame": frame, "view": k} for k, path in enumerate(paths)]
+            if all(path.exists() for path in paths):
+                continue
+            # the mesh's ellipsoids, shared by the frame's views (made on the host for the worker threads)
+            ell = particle_ellipsoids(x, radius, d, launch, on_device=False) if launch is not None else None
+            for cam, path in zip(cams, paths, strict=True):
+                if not path.exists():
+                    jobs.append(lambda launch, x=x, cam=cam, path=path, ell=ell: write_view(
+                        path, fluid_view(x, radius, cam, m, ell), cam, launch, radius, m.input))
+    finally:
+        if launch is not None:
+            launch.close()
     _pool(workers, device, jobs, f"metaball {scene}")
     return records
 

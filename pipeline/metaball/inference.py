@@ -19,6 +19,7 @@ from scipy.ndimage import distance_transform_edt
 
 from pipeline.camera import Camera
 from pipeline.config import MetaballConfig, from_dict
+from pipeline.ellipsoids import Ellipsoids
 from pipeline.metaball import decode_gbuffers, sphere_input
 from pipeline.metaball.train import SHIPPED_WEIGHTS, load_generator, predict
 from pipeline.metaball.views import WorkingView, fluid_view, network_input
@@ -36,20 +37,22 @@ class MetaballNet:
         self.generator.to(memory_format=torch.channels_last)
         # checkpoints from before the choice saw the thesis' circles at the view's own size
         config = {"input": "circles", "working_radius_px": 0.0, "architecture": "unet", "crop": 0, "splat_radius": 1.0,
-                  "residual": False, **state["config"]}
+                  "residual": False, "anisotropic": False, "ball_radius_radii": 1.0, **state["config"]}
         self.config: MetaballConfig = from_dict(MetaballConfig, config, path, "config")
         self.path = Path(path)
 
-    def view(self, positions: np.ndarray, particle_radius: float, camera: Camera) -> WorkingView:
-        """The particles' working view for ``camera``."""
-        return fluid_view(positions, particle_radius, camera, self.config)
+    def view(self, positions: np.ndarray, particle_radius: float, camera: Camera,
+             ellipsoids: Ellipsoids | None = None) -> WorkingView:
+        """The particles' working view for ``camera`` (``ellipsoids``: what anisotropic metaballs
+        are made of, ``fluid_view``)."""
+        return fluid_view(positions, particle_radius, camera, self.config, ellipsoids)
 
     def gbuffers(self, positions: np.ndarray, particle_radius: float, camera: Camera,
-                 launch: Launcher) -> dict[str, np.ndarray]:
+                 launch: Launcher, ellipsoids: Ellipsoids | None = None) -> dict[str, np.ndarray]:
         """Predicted ``normals`` (view space, unit), ``depth`` (scene units, 0 empty), ``mask`` and
         ``colour`` of one view (H x W [x 3])."""
         m = self.config
-        view = self.view(positions, particle_radius, camera)
+        view = self.view(positions, particle_radius, camera, ellipsoids)
         layers = view.layers(launch) if m.input != "circles" else None
         inputs = network_input(sphere_input(layers) if layers is not None else view.inputs(m.input, launch), m)
         h, w = inputs.shape[1:]
@@ -68,10 +71,10 @@ class MetaballNet:
         return to_size(out, view.size)
 
     def targets(self, positions: np.ndarray, particle_radius: float, camera: Camera,
-                launch: Launcher) -> dict[str, np.ndarray]:
+                launch: Launcher, ellipsoids: Ellipsoids | None = None) -> dict[str, np.ndarray]:
         """The ray-marched metaball surface of the same particles (``metaball_targets``; depth in scene
         units) at the view's own size: what the network's maps stand in for."""
-        return self.view(positions, particle_radius, camera).targets(launch, own_size=True)
+        return self.view(positions, particle_radius, camera, ellipsoids).targets(launch, own_size=True)
 
 
 def nearest_depth(front: np.ndarray) -> np.ndarray:

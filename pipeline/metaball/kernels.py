@@ -53,8 +53,22 @@ def ball_weight(v: wp.vec3, r: float, cutoff: float) -> wp.vec4:
 
 
 @wp.func
-def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float), cutoff_radii: float,
-             reach: float, x: wp.vec3) -> wp.vec4:
+def ball_term(v: wp.vec3, j: int, radii: wp.array(dtype=float), shapes: wp.array(dtype=wp.mat33),
+              cutoff_radii: float) -> wp.vec4:
+    """(w, grad w) of ball j at X, v = X - P_j: the sphere's r_j^2 / d^2, or with ``shapes`` (one per
+    ball; empty for spheres) the ellipsoid's 1 / |A_j v|^2 (A_j maps the ball onto the unit ball),
+    cut off at ``cutoff_radii`` in the ball's own units either way."""
+    if shapes.shape[0] == 0:
+        return ball_weight(v, radii[j], cutoff_radii * radii[j])
+    a = shapes[j]
+    t = ball_weight(a * v, 1.0, cutoff_radii)
+    g = wp.transpose(a) * wp.vec3(t[1], t[2], t[3])
+    return wp.vec4(t[0], g[0], g[1], g[2])
+
+
+@wp.func
+def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
+             shapes: wp.array(dtype=wp.mat33), cutoff_radii: float, reach: float, x: wp.vec3) -> wp.vec4:
     """(f, grad f) at x: the balls within ``reach`` from the hash grid, or all of them when
     ``cutoff_radii`` is 0 (infinite support)."""
     total = wp.vec4(0.0, 0.0, 0.0, 0.0)
@@ -62,16 +76,17 @@ def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(
         q = wp.hash_grid_query(grid, x, reach)
         j = int(0)
         while wp.hash_grid_query_next(q, j):
-            total += ball_weight(x - centres[j], radii[j], cutoff_radii * radii[j])
+            total += ball_term(x - centres[j], j, radii, shapes, cutoff_radii)
     else:
         for j in range(centres.shape[0]):
-            total += ball_weight(x - centres[j], radii[j], 0.0)
+            total += ball_term(x - centres[j], j, radii, shapes, 0.0)
     return total
 
 
 @wp.func
 def field_and_safe_step(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
-                        cutoff_radii: float, reach: float, iso: float, x: wp.vec3) -> wp.vec2:
+                        shapes: wp.array(dtype=wp.mat33), cutoff_radii: float, reach: float, iso: float,
+                        x: wp.vec3) -> wp.vec2:
     """(f, rho) at x: the field, and a distance rho within which it stays below ``iso`` (0 when f is
     at or above it), for empty-space skipping.
 
@@ -80,7 +95,8 @@ def field_and_safe_step(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii
     balls that can reach that far, the field stays below S / (1 - beta)^2, which is iso for
     beta = 1 - sqrt(S / iso). With a cut-off rho is capped at ``SAFE_STEP_CAP`` x ``reach`` (the largest
     support), and the balls that can reach are those with d_i < R_i + that cap, all inside the query
-    radius (1 + cap) reach (a larger cap allows longer steps but makes every query dearer)."""
+    radius (1 + cap) reach (a larger cap allows longer steps but makes every query dearer). With
+    ``shapes`` the radii are the ellipsoids' largest semi-axes, which bound their terms the same way."""
     f = float(0.0)
     bound = float(0.0)
     d_min = float(1.0e30)
@@ -93,7 +109,7 @@ def field_and_safe_step(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii
             r = radii[j]
             d = wp.length(v)
             if d < cutoff_radii * r + cap:
-                f += ball_weight(v, r, cutoff_radii * r)[0]
+                f += ball_term(v, j, radii, shapes, cutoff_radii)[0]
                 bound += r * r / wp.max(d * d, 1.0e-12)
                 d_min = wp.min(d_min, d)
     else:
@@ -101,7 +117,7 @@ def field_and_safe_step(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii
             v = x - centres[j]
             r = radii[j]
             d = wp.length(v)
-            f += ball_weight(v, r, 0.0)[0]
+            f += ball_term(v, j, radii, shapes, 0.0)[0]
             bound += r * r / wp.max(d * d, 1.0e-12)
             d_min = wp.min(d_min, d)
     if f >= iso or bound >= iso:
@@ -114,7 +130,8 @@ def field_and_safe_step(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii
 
 @wp.func
 def colour_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
-              colours: wp.array(dtype=wp.vec3), cutoff_radii: float, reach: float, x: wp.vec3) -> wp.vec3:
+              shapes: wp.array(dtype=wp.mat33), colours: wp.array(dtype=wp.vec3), cutoff_radii: float, reach: float,
+              x: wp.vec3) -> wp.vec3:
     """Field-weighted blend sum c_i w_i / sum w_i of the ball colours at x."""
     c = wp.vec3(0.0, 0.0, 0.0)
     total = float(0.0)
@@ -122,12 +139,12 @@ def colour_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array
         q = wp.hash_grid_query(grid, x, reach)
         j = int(0)
         while wp.hash_grid_query_next(q, j):
-            w = ball_weight(x - centres[j], radii[j], cutoff_radii * radii[j])[0]
+            w = ball_term(x - centres[j], j, radii, shapes, cutoff_radii)[0]
             c += colours[j] * w
             total += w
     else:
         for j in range(centres.shape[0]):
-            w = ball_weight(x - centres[j], radii[j], 0.0)[0]
+            w = ball_term(x - centres[j], j, radii, shapes, 0.0)[0]
             c += colours[j] * w
             total += w
     if total > 0.0:
@@ -206,6 +223,7 @@ def field_normals(
     grid: wp.uint64,
     centres_view: wp.array(dtype=wp.vec3),
     radii: wp.array(dtype=float),
+    shapes: wp.array(dtype=wp.mat33),
     cutoff_radii: float,
     reach: float,
     iso: float,
@@ -229,12 +247,12 @@ def field_normals(
     row = idx // width
     col = idx - row * width
     d = pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
-    g = field_at(grid, centres_view, radii, cutoff_radii, reach, d * t)
+    g = field_at(grid, centres_view, radii, shapes, cutoff_radii, reach, d * t)
     for _ in range(steps):
         slope = g[1] * d[0] + g[2] * d[1] + g[3] * d[2]
         if wp.abs(slope) > 1.0e-12:
             t = t + wp.clamp((iso - g[0]) / slope, -max_step, max_step)
-            g = field_at(grid, centres_view, radii, cutoff_radii, reach, d * t)
+            g = field_at(grid, centres_view, radii, shapes, cutoff_radii, reach, d * t)
     n = wp.vec3(-g[1], -g[2], -g[3])
     ln = wp.length(n)
     if ln > 0.0:
@@ -247,6 +265,7 @@ def march_metaballs(
     grid: wp.uint64,
     centres: wp.array(dtype=wp.vec3),
     radii: wp.array(dtype=float),
+    shapes: wp.array(dtype=wp.mat33),
     colours: wp.array(dtype=wp.vec3),
     cutoff_radii: float,
     reach: float,
@@ -291,7 +310,7 @@ def march_metaballs(
     d = cam_to_world * pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
     t_hit = float(-1.0)
     inv_len = 1.0 / wp.length(d)  # a step of dt in view depth moves the sample dt |d|
-    sample = field_and_safe_step(grid, centres, radii, cutoff_radii, reach, iso, eye + d * t)
+    sample = field_and_safe_step(grid, centres, radii, shapes, cutoff_radii, reach, iso, eye + d * t)
     if sample[0] >= iso:
         t_hit = t
     while t_hit < 0.0 and t < t_end:
@@ -299,13 +318,13 @@ def march_metaballs(
         if adaptive != 0:
             advance = wp.max(step, sample[1] * inv_len)
         t_next = wp.min(t + advance, t_end)
-        sample = field_and_safe_step(grid, centres, radii, cutoff_radii, reach, iso, eye + d * t_next)
+        sample = field_and_safe_step(grid, centres, radii, shapes, cutoff_radii, reach, iso, eye + d * t_next)
         if sample[0] >= iso:
             ta = t
             tb = t_next
             for _ in range(bisections):
                 tm = 0.5 * (ta + tb)
-                if field_at(grid, centres, radii, cutoff_radii, reach, eye + d * tm)[0] >= iso:
+                if field_at(grid, centres, radii, shapes, cutoff_radii, reach, eye + d * tm)[0] >= iso:
                     tb = tm
                 else:
                     ta = tm
@@ -314,14 +333,14 @@ def march_metaballs(
     if t_hit < 0.0:
         return
     x = eye + d * t_hit
-    grad = field_at(grid, centres, radii, cutoff_radii, reach, x)
+    grad = field_at(grid, centres, radii, shapes, cutoff_radii, reach, x)
     n = wp.transpose(cam_to_world) * wp.vec3(-grad[1], -grad[2], -grad[3])
     ln = wp.length(n)
     if ln > 0.0:
         n = n / ln
     depth_out[idx] = t_hit
     normal_out[idx] = n
-    colour_out[idx] = colour_at(grid, centres, radii, colours, cutoff_radii, reach, x)
+    colour_out[idx] = colour_at(grid, centres, radii, shapes, colours, cutoff_radii, reach, x)
     mask_out[idx] = 1.0
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from pipeline.camera import Camera
 from pipeline.config import MetaballConfig
+from pipeline.ellipsoids import Ellipsoids
 from pipeline.metaball import (
     PAPER_FOV_Y_DEG,
     MetaballParams,
@@ -58,6 +59,7 @@ class WorkingView:
     size: tuple[int, int] = (0, 0)  # the view's own image (height, width)
     splat_radius: float = 1.0  # sphere inputs: the spheres' radius in minimal radii
     field_steps: int | None = None  # sphere inputs: Newton steps of the field normals (None: the spheres')
+    shapes: np.ndarray | None = None  # N x 3 x 3 maps of ellipsoidal balls onto the unit ball (None: spheres)
 
     def circles(self, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The 4 x H x W circle input (``pipeline.metaball.circle_input``)."""
@@ -66,7 +68,7 @@ class WorkingView:
     def layers(self, launch: Launcher) -> dict:
         """The balls' sphere splat (``pipeline.metaball.sphere_layers``; depths in working units)."""
         return sphere_layers(self.positions, self.radii, self.camera, self.params, launch, self.splat_radius,
-                             self.field_steps)
+                             self.field_steps, self.shapes)
 
     def inputs(self, kind: str, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The network input of ``kind``: 'circles' (the thesis') or a sphere input ('field',
@@ -81,7 +83,7 @@ class WorkingView:
         camera = self.camera
         if own_size:
             camera = Camera(camera.view, camera.fov_y_deg, self.size[1], self.size[0])
-        out = metaball_targets(self.positions, self.radii, camera, self.params, launch, colours)
+        out = metaball_targets(self.positions, self.radii, camera, self.params, launch, colours, self.shapes)
         out["depth"] = (out["depth"] / self.scale).astype(np.float32)
         return out
 
@@ -106,22 +108,26 @@ def network_input(inputs: np.ndarray, m: MetaballConfig) -> np.ndarray:
     return out
 
 
-def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballConfig) -> WorkingView:
+def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballConfig,
+                 shapes: np.ndarray | None = None) -> WorkingView:
     """The working frame of balls at world ``positions`` with radii ``ball_radii`` (scene units; one
-    value or N) seen by ``camera``. Balls behind the camera are dropped."""
+    value or N) seen by ``camera``, ellipsoids where world ``shapes`` (N x 3 x 3) are given. Balls
+    behind the camera are dropped."""
     pos = np.asarray(positions, np.float64).reshape(-1, 3)
     radii = np.broadcast_to(np.asarray(ball_radii, np.float64), (len(pos),))
     view = camera.to_view(pos) if len(pos) else pos
     front = -view[:, 2] > 0
     view, radii = view[front], radii[front]
     scale = m.working_ball_radius / float(np.median(radii)) if len(radii) else 1.0
+    if shapes is not None:  # A (x - P) = A R^T (u - U) / scale for working-frame u = scale (R x + t)
+        shapes = np.asarray(shapes, np.float64).reshape(-1, 3, 3)[front] @ camera.view[:3, :3].T / scale
     view = view * scale
     near = float((-view[:, 2]).min()) - m.depth_margin if len(view) else 7.0
     h, w = camera.height, camera.width
     s = pixel_scale(view, radii * scale, camera, m.iso_level, m.working_radius_px)
     origin = Camera(np.eye(4), camera.fov_y_deg, max(1, round(w * s)), max(1, round(h * s)))
     return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale, (h, w), m.splat_radius,
-                       m.field_steps if m.input == "field" else None)
+                       m.field_steps if m.input == "field" else None, shapes)
 
 
 def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: float,
@@ -142,9 +148,19 @@ def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: 
     return 2.0 ** (working_half_octaves(r_px, working_radius_px) / 2.0)
 
 
-def fluid_view(positions: np.ndarray, particle_radius: float, camera: Camera, m: MetaballConfig) -> WorkingView:
-    """Fluid particles as metaballs of radius ``ball_radius_radii`` particle radii."""
-    return working_view(positions, m.ball_radius_radii * particle_radius, camera, m)
+def fluid_view(positions: np.ndarray, particle_radius: float, camera: Camera, m: MetaballConfig,
+               ellipsoids: Ellipsoids | None = None) -> WorkingView:
+    """Fluid particles as metaballs of radius ``ball_radius_radii`` particle radii: spheres at the
+    particles, or with ``metaball.anisotropic`` their ``ellipsoids`` (``particle_ellipsoids``; their
+    smoothed centres and shapes) as large."""
+    b = m.ball_radius_radii
+    if not m.anisotropic:
+        return working_view(positions, b * particle_radius, camera, m)
+    if ellipsoids is None:
+        raise ValueError("anisotropic metaballs (metaball.anisotropic) need the particles' ellipsoids")
+    centres, shapes = (a.numpy() if hasattr(a, "numpy") else np.asarray(a)
+                       for a in (ellipsoids.centres, ellipsoids.shapes))
+    return working_view(centres, b * particle_radius, camera, m, shapes / b)
 
 
 def random_ball_set(rng: np.random.Generator, max_balls: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
