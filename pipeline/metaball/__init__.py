@@ -120,20 +120,25 @@ def _balls(positions: np.ndarray, radii, colours: np.ndarray | None,
     return pos, rad, np.ascontiguousarray(col, np.float32)
 
 
-def _shapes(shapes: np.ndarray | None, radii: np.ndarray, keep: np.ndarray | None = None,
-            rotation: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
+def ellipsoid_maps(shapes: np.ndarray | None, radii: np.ndarray, keep: np.ndarray | None = None,
+                   rotation: np.ndarray | None = None,
+                   bounds: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
     """Checked ellipsoid maps (N x 3 x 3, float64; ``keep``'s rows, turned into a frame whose
     coordinates are ``rotation`` times the world's) and the radius that bounds each ball: its
-    largest semi-axis 1 / sigma_min(A), or its radius without shapes."""
+    largest semi-axis 1 / sigma_min(A) (``bounds`` when the caller knows them: a turn leaves them
+    be), or its radius without shapes."""
     if shapes is None:
         return None, radii
     a = np.asarray(shapes, np.float64).reshape(-1, 3, 3)
     if keep is not None:
         a = a[keep]
+        bounds = bounds[keep] if bounds is not None else None
     if len(a) != len(radii) or not np.isfinite(a).all():
         raise ValueError(f"shapes must be finite N x 3 x 3 maps for {len(radii)} balls, got {np.shape(shapes)}")
     if rotation is not None:
         a = a @ np.asarray(rotation, np.float64).T
+    if bounds is not None:
+        return a, np.asarray(bounds, np.float64)
     smallest = np.linalg.eigvalsh(np.swapaxes(a, 1, 2) @ a)[:, 0] if len(a) else np.ones(0)
     if (smallest <= 0).any():
         raise ValueError("ellipsoid shapes must be invertible")
@@ -167,10 +172,12 @@ def _support_span(centres_view: np.ndarray, supports: np.ndarray, camera: Camera
 
 
 def metaball_targets(positions: np.ndarray, radii, camera: Camera, params: MetaballParams, launch: Launcher,
-                     colours: np.ndarray | None = None, shapes: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                     colours: np.ndarray | None = None, shapes: np.ndarray | None = None,
+                     bounds: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Ray-march the metaball surface f = iso of balls at world ``positions`` (N x 3) with ``radii``
     (N, or one for all) and ``colours`` (N x 3, default ``params.colour``) for one view. With
-    ``shapes`` (N x 3 x 3 world maps A_i) the balls are ellipsoids, terms 1 / |A_i (X - P_i)|^2.
+    ``shapes`` (N x 3 x 3 world maps A_i) the balls are ellipsoids, terms 1 / |A_i (X - P_i)|^2, of
+    largest semi-axes ``bounds`` (computed from the maps when not given).
 
     Returns ``depth`` (H x W view depth, 0 where empty), ``normals`` (H x W x 3 view-space unit
     normals, -grad f, 0 where empty), ``colour`` (H x W x 3, the field-weighted blend of the ball
@@ -184,7 +191,7 @@ def metaball_targets(positions: np.ndarray, radii, camera: Camera, params: Metab
            "colour": np.zeros((h, w, 3), np.float32), "mask": np.zeros((h, w), np.float32)}
     if len(pos) == 0:
         return out
-    shapes, rad = _shapes(shapes, rad)
+    shapes, rad = ellipsoid_maps(shapes, rad, bounds=bounds)
     k = p.kernel_radius_radii
     supports = k * rad if k > 0 else np.zeros(0)  # none: every ray is marched over the depth range
     reach = float(supports.max()) if k > 0 else 0.0
@@ -247,8 +254,8 @@ def circle_input(positions: np.ndarray, radii, camera: Camera, params: MetaballP
 
 
 def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: MetaballParams, launch: Launcher,
-                  splat_radius: float = 1.0, field_steps: int | None = None,
-                  shapes: np.ndarray | None = None) -> dict[str, np.ndarray | float]:
+                  splat_radius: float = 1.0, field_steps: int | None = None, shapes: np.ndarray | None = None,
+                  bounds: np.ndarray | None = None) -> dict[str, np.ndarray | float]:
     """The balls as spheres of ``splat_radius`` times their minimal radius, splatted exactly (ray-sphere,
     two passes), for one view: per pixel the view depth where the ray enters its first sphere
     (``front``, 0 where none), the unit normal there (``normals``, H x W x 3: the sphere's own, or
@@ -256,7 +263,8 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     ``kernels.field_normals``), where the ray leaves its last sphere (``back``) and where it enters
     the nearest sphere more than a radius behind ``front`` (``behind``, 0 where none); ``r`` is the
     median sphere radius and ``r_px`` its median projection (pixels). ``shapes`` (world maps, as in
-    ``metaball_targets``) make the field's balls ellipsoids; the splat keeps spheres of ``radii``."""
+    ``metaball_targets``, with their ``bounds``) make the field's balls ellipsoids; the splat keeps
+    spheres of ``radii``."""
     p = params
     device = launch.device
     w, h = camera.width, camera.height
@@ -265,7 +273,8 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     r_min = splat_radius * minimal_radius(rad, p.iso_level)
     keep = -view[:, 2] > r_min  # spheres wholly in front of the camera
     view, r_min, rad = view[keep], r_min[keep], rad[keep]
-    shapes = _shapes(shapes, rad, keep, camera.view[:3, :3])[0]
+    if field_steps is not None:
+        shapes, bounds = ellipsoid_maps(shapes, rad, keep, camera.view[:3, :3], bounds)
     empty = {"front": np.zeros((h, w), np.float32), "back": np.zeros((h, w), np.float32),
              "behind": np.zeros((h, w), np.float32), "normals": np.zeros((h, w, 3), np.float32),
              "r": 1.0, "r_px": 1.0}
@@ -281,7 +290,8 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     launch.tasks(K.splat_behind_and_normals, len(view),
                  [[*args, r0, r1, r, t_in, t_behind, normals] for r0, r1 in bands])
     if field_steps is not None:
-        field_normals(args[0], view, rad, camera, p, launch, t_in, field_steps, normals, shapes)
+        field_normals(args[0], view, rad, camera, p, launch, t_in, field_steps, normals, shapes,
+                      bounds if shapes is not None else None)
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
     return {"front": np.where(covered, front, 0.0).astype(np.float32),
@@ -293,16 +303,17 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
 
 def field_normals(centres: wp.array, view: np.ndarray, radii: np.ndarray, camera: Camera, params: MetaballParams,
                   launch: Launcher, t_front: wp.array, steps: int, normals: wp.array,
-                  shapes: np.ndarray | None = None) -> None:
+                  shapes: np.ndarray | None = None, bounds: np.ndarray | None = None) -> None:
     """Overwrite ``normals`` (H x W, view space) with the metaball field's where the rays enter their
     front sphere at ``t_front`` (``kernels.field_normals``, Newton steps of at most a ball radius) for
     balls at view-space centres ``view`` (on the device: ``centres``) with ``radii`` (and view-space
-    ellipsoid ``shapes``, already checked). Needs the field's cut-off (a hash grid)."""
+    ellipsoid ``shapes`` of largest semi-axes ``bounds``, both checked). Needs the field's cut-off
+    (a hash grid)."""
     k = params.kernel_radius_radii
     if k <= 0:
         raise ValueError("field normals need a kernel radius (metaball.kernel_radius_radii > 0)")
     device = launch.device
-    bounds = _shapes(shapes, radii)[1]
+    bounds = ellipsoid_maps(shapes, radii, bounds=bounds)[1]
     reach = float(k * bounds.max())
     grid = hash_grid(centres, view, reach, device)
     launch(K.field_normals, camera.width * camera.height,

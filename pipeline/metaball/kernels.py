@@ -60,6 +60,9 @@ def ball_term(v: wp.vec3, j: int, radii: wp.array(dtype=float), shapes: wp.array
     cut off at ``cutoff_radii`` in the ball's own units either way."""
     if shapes.shape[0] == 0:
         return ball_weight(v, radii[j], cutoff_radii * radii[j])
+    reach = cutoff_radii * radii[j]  # radii bound the ellipsoids: no term past this, skip the product
+    if cutoff_radii > 0.0 and wp.dot(v, v) >= reach * reach:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
     a = shapes[j]
     t = ball_weight(a * v, 1.0, cutoff_radii)
     g = wp.transpose(a) * wp.vec3(t[1], t[2], t[3])

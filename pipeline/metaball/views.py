@@ -24,6 +24,7 @@ from pipeline.metaball import (
     PAPER_FOV_Y_DEG,
     MetaballParams,
     circle_input,
+    ellipsoid_maps,
     metaball_targets,
     minimal_radius,
     sphere_input,
@@ -60,6 +61,7 @@ class WorkingView:
     splat_radius: float = 1.0  # sphere inputs: the spheres' radius in minimal radii
     field_steps: int | None = None  # sphere inputs: Newton steps of the field normals (None: the spheres')
     shapes: np.ndarray | None = None  # N x 3 x 3 maps of ellipsoidal balls onto the unit ball (None: spheres)
+    bounds: np.ndarray | None = None  # N largest semi-axes of those ellipsoids (working units)
 
     def circles(self, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The 4 x H x W circle input (``pipeline.metaball.circle_input``)."""
@@ -68,7 +70,7 @@ class WorkingView:
     def layers(self, launch: Launcher) -> dict:
         """The balls' sphere splat (``pipeline.metaball.sphere_layers``; depths in working units)."""
         return sphere_layers(self.positions, self.radii, self.camera, self.params, launch, self.splat_radius,
-                             self.field_steps, self.shapes)
+                             self.field_steps, self.shapes, self.bounds)
 
     def inputs(self, kind: str, launch: Launcher, colours: np.ndarray | None = None) -> np.ndarray:
         """The network input of ``kind``: 'circles' (the thesis') or a sphere input ('field',
@@ -83,7 +85,8 @@ class WorkingView:
         camera = self.camera
         if own_size:
             camera = Camera(camera.view, camera.fov_y_deg, self.size[1], self.size[0])
-        out = metaball_targets(self.positions, self.radii, camera, self.params, launch, colours, self.shapes)
+        out = metaball_targets(self.positions, self.radii, camera, self.params, launch, colours, self.shapes,
+                               self.bounds)
         out["depth"] = (out["depth"] / self.scale).astype(np.float32)
         return out
 
@@ -109,10 +112,11 @@ def network_input(inputs: np.ndarray, m: MetaballConfig) -> np.ndarray:
 
 
 def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballConfig,
-                 shapes: np.ndarray | None = None) -> WorkingView:
+                 shapes: np.ndarray | None = None, bounds: np.ndarray | None = None) -> WorkingView:
     """The working frame of balls at world ``positions`` with radii ``ball_radii`` (scene units; one
-    value or N) seen by ``camera``, ellipsoids where world ``shapes`` (N x 3 x 3) are given. Balls
-    behind the camera are dropped."""
+    value or N) seen by ``camera``, ellipsoids where world ``shapes`` (N x 3 x 3) are given (with
+    their largest semi-axes ``bounds``, computed when not given). Balls behind the camera are
+    dropped."""
     pos = np.asarray(positions, np.float64).reshape(-1, 3)
     radii = np.broadcast_to(np.asarray(ball_radii, np.float64), (len(pos),))
     view = camera.to_view(pos) if len(pos) else pos
@@ -120,14 +124,15 @@ def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballC
     view, radii = view[front], radii[front]
     scale = m.working_ball_radius / float(np.median(radii)) if len(radii) else 1.0
     if shapes is not None:  # A (x - P) = A R^T (u - U) / scale for working-frame u = scale (R x + t)
-        shapes = np.asarray(shapes, np.float64).reshape(-1, 3, 3)[front] @ camera.view[:3, :3].T / scale
+        shapes, bounds = ellipsoid_maps(shapes, radii, front if len(front) else None, camera.view[:3, :3], bounds)
+        shapes, bounds = shapes / scale, bounds * scale
     view = view * scale
     near = float((-view[:, 2]).min()) - m.depth_margin if len(view) else 7.0
     h, w = camera.height, camera.width
     s = pixel_scale(view, radii * scale, camera, m.iso_level, m.working_radius_px)
     origin = Camera(np.eye(4), camera.fov_y_deg, max(1, round(w * s)), max(1, round(h * s)))
     return WorkingView(view, radii * scale, origin, params_of(m, max(near, 1e-3)), scale, (h, w), m.splat_radius,
-                       m.field_steps if m.input == "field" else None, shapes)
+                       m.field_steps if m.input == "field" else None, shapes, bounds)
 
 
 def pixel_scale(view: np.ndarray, radii: np.ndarray, camera: Camera, iso_level: float,
@@ -158,9 +163,9 @@ def fluid_view(positions: np.ndarray, particle_radius: float, camera: Camera, m:
         return working_view(positions, b * particle_radius, camera, m)
     if ellipsoids is None:
         raise ValueError("anisotropic metaballs (metaball.anisotropic) need the particles' ellipsoids")
-    centres, shapes = (a.numpy() if hasattr(a, "numpy") else np.asarray(a)
-                       for a in (ellipsoids.centres, ellipsoids.shapes))
-    return working_view(centres, b * particle_radius, camera, m, shapes / b)
+    centres, shapes, bounds = (a.numpy() if hasattr(a, "numpy") else np.asarray(a)
+                               for a in (ellipsoids.centres, ellipsoids.shapes, ellipsoids.bounds))
+    return working_view(centres, b * particle_radius, camera, m, shapes / b, b * bounds.astype(np.float64))
 
 
 def random_ball_set(rng: np.random.Generator, max_balls: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
