@@ -7,7 +7,10 @@ working scale), every ``--stride``-th simulated frame. Rows: the spheres' own no
 field's normal at the front of spheres of each splat radius after 0, 1 or 2 Newton steps. Errors
 are over the pixels both the splat and the surface cover, pooled over the views.
 
-    .venv/bin/python benchmarks/bench_metaball_input.py [--config configs/metaball.yaml] [--radii 1 1.5]
+With ``metaball.anisotropic`` (the default) the balls are the particles' ellipsoids, as the dataset
+draws them.
+
+    .venv/bin/python benchmarks/bench_metaball_input.py [--config configs/metaball.yaml] [--radii 0.8 1]
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from pipeline.metaball.dataset import fluid_cameras
 from pipeline.metaball.views import fluid_view
 from pipeline.metrics import angular_errors, iou
 from pipeline.parallel import Launcher, init_warp
+from pipeline.surface import particle_ellipsoids
 from stages import simulate
 from stages.common import StageOptions, make_run
 
@@ -40,7 +44,7 @@ def main() -> None:
     ap.add_argument("--config", default=str(ROOT / "configs" / "metaball.yaml"))
     ap.add_argument("--scene", default="validation_drop")
     ap.add_argument("--stride", type=int, default=12, help="every n-th simulated frame")
-    ap.add_argument("--radii", type=float, nargs="+", default=[1.0, 1.3, 1.5, 1.7])
+    ap.add_argument("--radii", type=float, nargs="+", default=[0.6, 0.7, 0.8, 1.0, 1.5])
     ap.add_argument("--steps", type=int, nargs="+", default=[0, 1, 2])
     args = ap.parse_args()
     wp.config.quiet = True
@@ -55,8 +59,9 @@ def main() -> None:
     views = 0
     for frame in select_frames(info.frames, args.stride):
         x = load_frame(sim.dir / frame_name(frame))[0]
+        ell = particle_ellipsoids(x, info.particle_radius, d, launch) if m.anisotropic else None
         for cam in fluid_cameras(args.scene, frame, x, info.particle_radius, m, d):
-            view = fluid_view(x, info.particle_radius, cam, m)
+            view = fluid_view(x, info.particle_radius, cam, m, ell)
             target = view.targets(launch)
             surface = target["mask"] > 0
             views += 1
@@ -71,7 +76,8 @@ def main() -> None:
     launch.close()
     print(f"# bench_metaball_input: {date.today()}, {platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cores; {views} views of {args.scene} at the working scale "
-          f"({m.working_radius_px:g} px), against the ray-marched metaball surface, no network\n")
+          f"({m.working_radius_px:g} px), {'ellipsoids' if m.anisotropic else 'spheres'} of "
+          f"{m.ball_radius_radii:g} particle radii, against the ray-marched metaball surface, no network\n")
     print("| normals | splat radius (minimal radii) | Newton steps | mean (deg) | median (deg) | splat IoU "
           "| ms a view |")
     print("|---|---|---|---|---|---|---|")

@@ -135,9 +135,12 @@ def sequence_overhead(count: str, frames: int, width: int, height: int) -> dict:
 
 
 def _child(args: list[str]) -> dict:
-    """Run one measurement in a fresh process (its own peak memory) and read its JSON line."""
+    """Run one measurement in a fresh process (its own peak memory) and read its JSON line, with the
+    OpenMP wait policy ``deep-ssfr`` sets (``stages/cli.py``)."""
+    env = {"OMP_WAIT_POLICY": "PASSIVE", **os.environ,
+           "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")}
     out = subprocess.run([sys.executable, __file__, "--one", *args], capture_output=True, text=True, cwd=ROOT,
-                         env={**os.environ, "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")})
+                         env=env)
     if out.returncode != 0:
         raise SystemExit(f"bench_scale: {' '.join(args)} failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])

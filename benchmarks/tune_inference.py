@@ -3,7 +3,8 @@
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
 than the particles' splat), at render time views whose particles are smaller than
 ``UPSCALE_BELOW_PX`` are interpolated up to the working radius, and the network may run in
-bfloat16 (``render.refiner_precision``). All three change what the evaluation scores, so they are
+bfloat16 (``render.refiner_precision``); refined pixels whose normal is shorter than
+``render.normal_threshold`` are dropped. All of them change what the evaluation scores, so they are
 chosen here on the scene that chooses the trainer's best checkpoint (``train.validation_scenes``),
 never on the reported held-out sequences. This prints, for each value of one setting (the others at
 their defaults), the refined normals' mean and median error over the
@@ -47,11 +48,13 @@ def main() -> None:
     parser.add_argument("--below", type=float, nargs="+", default=[0.0, 0.8, 1.0, 1.25, 1.5, float("inf")],
                         help="UPSCALE_BELOW_PX values (0: never upscale, inf: always)")
     parser.add_argument("--precisions", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16"])
+    parser.add_argument("--thresholds", type=float, nargs="+", default=[],
+                        help="render.normal_threshold values (the refined normal's shortest kept length)")
     args = parser.parse_args()
     wp.config.quiet = True
     defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX}
     settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below]
-                + [("precision", v) for v in args.precisions])
+                + [("precision", v) for v in args.precisions] + [("threshold", v) for v in args.thresholds])
     scores: dict = {}
     radii: dict[int, list[float]] = {}
     for size in args.sizes:
@@ -75,7 +78,8 @@ def main() -> None:
                         methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
                         methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
                         refiner = refiners[value if key == "precision" else "auto"]
-                        n, mask, _ = methods.refine(refiner, ch, threshold, cam.focal_px, radius)
+                        n, mask, _ = methods.refine(refiner, ch, value if key == "threshold" else threshold,
+                                                    cam.focal_px, radius)
                         e, _, missed = errors_over_reference(n, target, mask, t_mask)
                         got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
                         got["errors"].append(e)

@@ -4,15 +4,22 @@ script, the make targets, ``python -m stages.cli`` (torchrun, tests) all come he
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
-import typer
+# Idle OpenMP threads sleep instead of spinning (read when torch loads its OpenMP runtime, so before
+# any import of torch): the renderer's EXR writer, Warp's launcher threads and torch share the cores,
+# and torch's spinning threads took them from the others. A refined 1080p frame of 38k particles:
+# 826 -> 694 ms, its network 252 -> 113 ms (benchmarks/bench_scale.py). Set it yourself to override.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from pipeline.config import METHODS
-from pipeline.executor import cluster_scope
-from stages.common import StageOptions, stage_main
+import typer  # noqa: E402
+
+from pipeline.config import METHODS  # noqa: E402
+from pipeline.executor import cluster_scope  # noqa: E402
+from stages.common import StageOptions, stage_main  # noqa: E402
 
 app = typer.Typer(name="deep-ssfr", no_args_is_help=True, add_completion=False, rich_markup_mode=None,
                   help="Screen-space fluid rendering with a cGAN normal-map refiner: simulate, build the dataset, "
