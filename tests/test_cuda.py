@@ -265,7 +265,8 @@ def test_refine_on_the_gpu_keeps_its_post_processing_there_and_matches_the_cpu()
                              aniso_filters=("bilateral",))
     ss.close()
     launch.close()
-    out = {d: refine(load_refiner(SHIPPED_WEIGHTS, d), ch, 0.5, cam.focal_px, 0.004) for d in ("cpu", "cuda")}
+    out = {d: refine(load_refiner(SHIPPED_WEIGHTS, d, precision="float32"), ch, 0.5, cam.focal_px, 0.004)
+           for d in ("cpu", "cuda")}
     (n_cpu, m_cpu, z_cpu), (n_gpu, m_gpu, z_gpu) = out["cpu"], out["cuda"]
     assert isinstance(n_gpu, np.ndarray) and n_gpu.dtype == np.float32
     assert (m_cpu == m_gpu).mean() > 0.995 and m_cpu.sum() > 100
@@ -291,7 +292,7 @@ def test_the_refined_frame_stays_on_the_gpu_and_shades_as_the_host_frame():
 
     size = 512
     ss, launch, shader = ScreenSpace("cuda:0"), Launcher("cuda:0"), Shader("cuda:0")
-    refiner = load_refiner(SHIPPED_WEIGHTS, "cuda")
+    refiner = load_refiner(SHIPPED_WEIGHTS, "cuda", precision="float32")
     bg, bg_depth = np.full((size, size, 3), 0.5, np.float32), np.full((size, size), 10.0, np.float32)
     rp = RenderConfig(width=size, height=size)
     for seed in range(3):

@@ -90,7 +90,9 @@ def _refine_view():
     ss = ScreenSpace("cpu")
     ch = screen_space_inputs(x, VIEW_RADIUS, cam, DatasetConfig(), ss, filters=("bilateral",))
     ss.close()
-    refiner = load_refiner(SHIPPED_WEIGHTS)
+    # float32, so that two ways of making the same input compare to its rounding (bfloat16 would
+    # round them further apart: test_bfloat16_refiner_stays_within_rounding_of_float32)
+    refiner = load_refiner(SHIPPED_WEIGHTS, precision="float32")
     if refiner.splat != "sphere":
         from pipeline.parallel import Launcher
         from pipeline.surface import particle_ellipsoids
@@ -170,7 +172,7 @@ def test_the_refined_frame_kept_on_the_device_shades_as_the_host_frame():
     x = (np.random.default_rng(2).normal(size=(2500, 3)) * (0.06, 0.03, 0.05) + (0, 0, -0.5)).astype(np.float32)
     cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 128, 128)
     ss, launch, shader = ScreenSpace("cpu"), Launcher("cpu"), Shader("cpu")
-    refiner = load_refiner(SHIPPED_WEIGHTS)
+    refiner = load_refiner(SHIPPED_WEIGHTS, precision="float32")  # the two ways, to float32 rounding
     bg, bg_depth = np.full((128, 128, 3), 0.5, np.float32), np.full((128, 128), 10.0, np.float32)
     frames, sources = {}, {}
     for on_device in (False, True):
