@@ -290,8 +290,7 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     launch.tasks(K.splat_behind_and_normals, len(view),
                  [[*args, r0, r1, r, t_in, t_behind, normals] for r0, r1 in bands])
     if field_steps is not None:
-        field_normals(args[0], view, rad, camera, p, launch, t_in, field_steps, normals, shapes,
-                      bounds if shapes is not None else None)
+        field_normals(args[0], view, rad, camera, p, launch, t_in, field_steps, normals, shapes, bounds)
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
     return {"front": np.where(covered, front, 0.0).astype(np.float32),
@@ -307,13 +306,14 @@ def field_normals(centres: wp.array, view: np.ndarray, radii: np.ndarray, camera
     """Overwrite ``normals`` (H x W, view space) with the metaball field's where the rays enter their
     front sphere at ``t_front`` (``kernels.field_normals``, Newton steps of at most a ball radius) for
     balls at view-space centres ``view`` (on the device: ``centres``) with ``radii`` (and view-space
-    ellipsoid ``shapes`` of largest semi-axes ``bounds``, both checked). Needs the field's cut-off
-    (a hash grid)."""
+    ellipsoid ``shapes`` of largest semi-axes ``bounds``, as ``ellipsoid_maps`` returns them;
+    without bounds they are computed). Needs the field's cut-off (a hash grid)."""
     k = params.kernel_radius_radii
     if k <= 0:
         raise ValueError("field normals need a kernel radius (metaball.kernel_radius_radii > 0)")
     device = launch.device
-    bounds = ellipsoid_maps(shapes, radii, bounds=bounds)[1]
+    if bounds is None:
+        shapes, bounds = ellipsoid_maps(shapes, radii)
     reach = float(k * bounds.max())
     grid = hash_grid(centres, view, reach, device)
     launch(K.field_normals, camera.width * camera.height,

@@ -124,7 +124,7 @@ def working_view(positions: np.ndarray, ball_radii, camera: Camera, m: MetaballC
     view, radii = view[front], radii[front]
     scale = m.working_ball_radius / float(np.median(radii)) if len(radii) else 1.0
     if shapes is not None:  # A (x - P) = A R^T (u - U) / scale for working-frame u = scale (R x + t)
-        shapes, bounds = ellipsoid_maps(shapes, radii, front if len(front) else None, camera.view[:3, :3], bounds)
+        shapes, bounds = ellipsoid_maps(shapes, radii, front, camera.view[:3, :3], bounds)
         shapes, bounds = shapes / scale, bounds * scale
     view = view * scale
     near = float((-view[:, 2]).min()) - m.depth_margin if len(view) else 7.0

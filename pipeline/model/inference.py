@@ -77,7 +77,7 @@ class Refiner:
 
     def __init__(self, generator: Generator, device: str | torch.device = "cpu", crop: bool = True,
                  spec: InputSpec | None = None, precision: str = "float32"):
-        """``precision``: 'float32', 'bfloat16' or 'auto' (``pipeline.device.inference_dtype``)."""
+        """``precision``: 'float32', 'bfloat16' or 'auto' (``inference_dtype``)."""
         self.spec = spec or InputSpec()
         self.device = torch.device(device)
         self.dtype = inference_dtype(str(self.device), precision)
