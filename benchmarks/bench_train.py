@@ -1,6 +1,9 @@
 """Refiner speed: training images/s on 256x256 crops and inference ms per frame at 512^2 and 1024^2.
 
     .venv/bin/python benchmarks/bench_train.py [--config configs/default.yaml] [--steps 6]
+
+On this CPU (AVX512-BF16) training runs under bfloat16 autocast in channels-last layout: 9.1 images/s
+on configs/generalize.yaml's refiner, against 3.7 in float32 and the default layout (2026-12-06).
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ def main() -> None:
     y = rng.normal(size=(cfg.batch_size, 3, args.crop, args.crop)).astype(np.float32).clip(-1, 1)
     print(f"device {device}, torch {torch.__version__}, {torch.get_num_threads()} threads; generator "
           f"{count_parameters(refiner.generator) / 1e6:.2f} M, discriminator "
-          f"{count_parameters(refiner.discriminator) / 1e6:.2f} M parameters")
+          f"{count_parameters(refiner.discriminator) / 1e6:.2f} M parameters; autocast "
+          f"{str(refiner.autocast_dtype).removeprefix('torch.')} (train.mixed_precision)")
     refiner.train_step(x, y)  # warm-up
     start = time.perf_counter()
     for _ in range(args.steps):

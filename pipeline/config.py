@@ -406,7 +406,8 @@ class TrainConfig:
     val_frames: int = Field(16, ge=1)
     """Validation frames evaluated each epoch (spread over the held-out split)."""
     mixed_precision: bool = True
-    """Use autocast on CUDA (ignored on the CPU)."""
+    """Autocast: float16 on CUDA, bfloat16 on a CPU with native bf16 (AVX512-BF16 or AMX), float32
+    elsewhere (``pipeline.model.trainer.autocast_dtype``)."""
     threads: int = Field(0, ge=0)
     """torch CPU threads (0: one per core)."""
     data: Literal["memory", "disk"] = "memory"

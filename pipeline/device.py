@@ -38,6 +38,17 @@ def cuda_available() -> bool:
         return False
 
 
+def native_bfloat16(device: str) -> bool:
+    """Whether ``device`` multiplies bfloat16 natively: a CUDA GPU with bf16, a CPU with AVX512-BF16
+    or AMX (where oneDNN's bf16 convolutions beat float32; elsewhere bf16 is emulated, and slower)."""
+    import torch
+
+    if str(device).startswith("cuda"):
+        return torch.cuda.is_bf16_supported()
+    return bool(getattr(torch.cpu, "_is_avx512_bf16_supported", bool)()
+                or getattr(torch.cpu, "_is_amx_tile_supported", bool)())
+
+
 def warp_device(device: str) -> str:
     """Warp's name for the device."""
     return "cuda:0" if device == "cuda" else "cpu"

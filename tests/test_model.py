@@ -13,6 +13,7 @@ import torch
 import yaml
 
 from pipeline.config import TrainConfig
+from pipeline.device import native_bfloat16
 from pipeline.model.data import InputSpec, prepare
 from pipeline.model.losses import normal_constraint_loss
 from pipeline.model.networks import Discriminator, Generator
@@ -95,6 +96,26 @@ def test_training_cuts_the_content_loss_by_more_than_half():
     losses = [refiner.train_step(x, y)["loss_content"] for _ in range(200)]
     first, last = np.mean(losses[:10]), np.mean(losses[-10:])
     assert last < 0.5 * first, (first, last)
+
+
+@pytest.mark.skipif(not native_bfloat16("cpu"), reason="this CPU has no native bfloat16")
+def test_bfloat16_training_follows_float32():
+    """``train.mixed_precision`` on a CPU with native bf16 trains under bfloat16 autocast with
+    float32 weights, and follows float32's losses step for step up to rounding; a missing autocast
+    (equal losses), half weights or a wrong dtype fail."""
+    frames = _ball_frames()
+    x = np.stack([f[0] for f in frames])
+    y = np.stack([f[1] for f in frames])
+    losses, refiners = {}, {}
+    for mixed in (False, True):
+        cfg = TrainConfig(gen_base_channels=16, gen_downsamples=2, gen_res_blocks=2, disc_base_channels=8,
+                          disc_layers=3, lr_decay=1.0, mixed_precision=mixed)
+        refiners[mixed] = Refiner(cfg, "cpu", seed=0)
+        losses[mixed] = np.array([refiners[mixed].train_step(x, y)["loss_g"] for _ in range(10)])
+    assert refiners[False].autocast_dtype == torch.float32 and refiners[True].autocast_dtype == torch.bfloat16
+    assert all(p.dtype == torch.float32 for p in refiners[True].generator.parameters())
+    assert not np.array_equal(losses[True], losses[False]), "bfloat16 must actually round"
+    np.testing.assert_allclose(losses[True], losses[False], rtol=0.05)
 
 
 def _tiny_train_config(tmp_path, name: str) -> str:

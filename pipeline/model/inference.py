@@ -22,6 +22,7 @@ import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
+from pipeline.device import native_bfloat16
 from pipeline.model.data import InputSpec, Splat
 from pipeline.model.networks import Generator
 
@@ -33,11 +34,7 @@ def inference_dtype(device: str, precision: str = "auto") -> torch.dtype:
     elsewhere (emulated bf16 would be slower)."""
     if precision != "auto":
         return {"float32": torch.float32, "bfloat16": torch.bfloat16}[precision]
-    if str(device).startswith("cuda"):
-        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float32
-    native = (getattr(torch.cpu, "_is_avx512_bf16_supported", bool)()
-              or getattr(torch.cpu, "_is_amx_tile_supported", bool)())
-    return torch.bfloat16 if native else torch.float32
+    return torch.bfloat16 if native_bfloat16(device) else torch.float32
 
 
 def fold_batch_norm(module: nn.Module) -> nn.Module:
