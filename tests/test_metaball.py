@@ -186,6 +186,35 @@ def test_two_balls_on_the_line_of_sight_meet_the_ray_at_the_root_of_the_summed_f
     assert np.allclose(out["normals"][15, 15], [0.0, 0.0, 1.0], atol=1e-5)
 
 
+def test_field_normals_sum_the_wide_balls_from_their_own_grid(launch):
+    """The field's normals at given ray depths are the brute-force sum's over every ball, also near
+    the few balls wider than the 99th percentile, which come from a grid of their own."""
+    import warp as wp
+
+    from pipeline.metaball import field_normals
+
+    rng = np.random.default_rng(3)
+    n, k = 400, 4.0
+    centres = np.column_stack([rng.uniform(-0.5, 0.5, (n, 2)), rng.uniform(-3.2, -2.8, n)])
+    radii = np.full(n, 0.05)
+    radii[:3] = 0.15  # 0.75% of the balls, three times as wide
+    cam = Camera(np.eye(4), 20.0, 64, 64)
+    t = 3.0
+    t_front = wp.full(64 * 64, t, dtype=float, device="cpu")
+    normals = wp.zeros(64 * 64, dtype=wp.vec3, device="cpu")
+    field_normals(centres, radii, cam, MetaballParams(kernel_radius_radii=k), launch, t_front, 0, normals)
+    got = normals.numpy().reshape(64, 64, 3)
+    x = cam.pixel_rays().astype(np.float64) * t
+    grad = _reference_field(x, centres, radii, k)[1]
+    narrow_only = _reference_field(x, centres[3:], radii[3:], k)[1]
+    some = np.linalg.norm(grad, axis=-1) > 1e-6
+    want = -grad / np.maximum(np.linalg.norm(grad, axis=-1, keepdims=True), 1e-30)
+    without = -narrow_only / np.maximum(np.linalg.norm(narrow_only, axis=-1, keepdims=True), 1e-30)
+    error = np.degrees(np.arccos(np.clip((got * want).sum(-1), -1.0, 1.0)))[some]
+    assert some.mean() > 0.8 and error.max() < 0.05, error.max()
+    assert np.degrees(np.arccos(np.clip((without * want).sum(-1), -1.0, 1.0)))[some].max() > 5.0
+
+
 def test_balls_outside_the_depth_range_or_behind_the_camera_leave_the_image_empty(launch):
     p = MetaballParams()
     cam = paper_camera(24, 24)

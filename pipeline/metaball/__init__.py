@@ -21,7 +21,7 @@ from pipeline.camera import Camera
 from pipeline.metaball import kernels as K
 from pipeline.parallel import Launcher
 from pipeline.screen import row_bands
-from pipeline.surface import hash_grid
+from pipeline.surface import WIDE_KERNEL_QUANTILE, hash_grid
 from pipeline.vectors import box_mean, length
 
 _EMPTY = 1.0e30
@@ -290,7 +290,7 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
     launch.tasks(K.splat_behind_and_normals, len(view),
                  [[*args, r0, r1, r, t_in, t_behind, normals] for r0, r1 in bands])
     if field_steps is not None:
-        field_normals(args[0], view, rad, camera, p, launch, t_in, field_steps, normals, shapes, bounds)
+        field_normals(view, rad, camera, p, launch, t_in, field_steps, normals, shapes, bounds)
     front, back, behind = (a.numpy().reshape(h, w) for a in (t_in, t_out, t_behind))
     covered = front < 0.5 * _EMPTY
     return {"front": np.where(covered, front, 0.0).astype(np.float32),
@@ -300,26 +300,38 @@ def sphere_layers(positions: np.ndarray, radii, camera: Camera, params: Metaball
             "r_px": float(np.median(camera.focal_px * r_min / -view[:, 2]))}
 
 
-def field_normals(centres: wp.array, view: np.ndarray, radii: np.ndarray, camera: Camera, params: MetaballParams,
+def field_normals(view: np.ndarray, radii: np.ndarray, camera: Camera, params: MetaballParams,
                   launch: Launcher, t_front: wp.array, steps: int, normals: wp.array,
                   shapes: np.ndarray | None = None, bounds: np.ndarray | None = None) -> None:
     """Overwrite ``normals`` (H x W, view space) with the metaball field's where the rays enter their
     front sphere at ``t_front`` (``kernels.field_normals``, Newton steps of at most a ball radius) for
-    balls at view-space centres ``view`` (on the device: ``centres``) with ``radii`` (and view-space
-    ellipsoid ``shapes`` of largest semi-axes ``bounds``, as ``ellipsoid_maps`` returns them;
-    without bounds they are computed). Needs the field's cut-off (a hash grid)."""
+    balls at view-space centres ``view`` with ``radii`` (and view-space ellipsoid ``shapes`` of
+    largest semi-axes ``bounds``, as ``ellipsoid_maps`` returns them; without bounds they are
+    computed). Needs the field's cut-off (hash grids)."""
     k = params.kernel_radius_radii
     if k <= 0:
         raise ValueError("field normals need a kernel radius (metaball.kernel_radius_radii > 0)")
     device = launch.device
     if bounds is None:
         shapes, bounds = ellipsoid_maps(shapes, radii)
-    reach = float(k * bounds.max())
-    grid = hash_grid(centres, view, reach, device)
+    # The few widest balls get a grid of their own: one grid must be queried with the largest reach
+    # of all, which on a splash frame is 1.5x the 99th percentile's and visits 3x the candidates.
+    wide = bounds > np.quantile(bounds, WIDE_KERNEL_QUANTILE)
+    order = np.concatenate([np.flatnonzero(~wide), np.flatnonzero(wide)])
+    start = int((~wide).sum())
+    pos = np.ascontiguousarray(view[order], np.float32)
+    centres = wp.array(pos, dtype=wp.vec3, device=device)
+    narrow_reach = float(k * bounds[~wide].max())
+    narrow = hash_grid(centres[:start], pos[:start], narrow_reach, device)
+    wide_reach, wide_grid = -1.0, narrow
+    if wide.any():
+        wide_reach = float(k * bounds[wide].max())
+        wide_grid = hash_grid(centres[start:], pos[start:], wide_reach, device)
     launch(K.field_normals, camera.width * camera.height,
-           [grid.id, centres, wp.array(bounds.astype(np.float32), dtype=float, device=device),
-            _shape_array(shapes, device), float(k), reach, params.iso_level, camera.width, camera.height,
-            camera.focal_px, t_front, int(steps), float(np.median(radii)), normals])
+           [narrow.id, narrow_reach, wide_grid.id, wide_reach, start, centres,
+            wp.array(bounds[order].astype(np.float32), dtype=float, device=device),
+            _shape_array(None if shapes is None else shapes[order], device), float(k), params.iso_level,
+            camera.width, camera.height, camera.focal_px, t_front, int(steps), float(np.median(radii)), normals])
 
 
 def sphere_input(layers: dict) -> np.ndarray:

@@ -70,16 +70,26 @@ def ball_term(v: wp.vec3, j: int, radii: wp.array(dtype=float), shapes: wp.array
 
 
 @wp.func
+def grid_field(grid: wp.uint64, reach: float, first: int, centres: wp.array(dtype=wp.vec3),
+               radii: wp.array(dtype=float), shapes: wp.array(dtype=wp.mat33), cutoff_radii: float,
+               x: wp.vec3) -> wp.vec4:
+    """(f, grad f) at x of the balls within ``reach`` in ``grid``, whose point j is ball first + j."""
+    total = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    q = wp.hash_grid_query(grid, x, reach)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        total += ball_term(x - centres[first + j], first + j, radii, shapes, cutoff_radii)
+    return total
+
+
+@wp.func
 def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
              shapes: wp.array(dtype=wp.mat33), cutoff_radii: float, reach: float, x: wp.vec3) -> wp.vec4:
     """(f, grad f) at x: the balls within ``reach`` from the hash grid, or all of them when
     ``cutoff_radii`` is 0 (infinite support)."""
     total = wp.vec4(0.0, 0.0, 0.0, 0.0)
     if cutoff_radii > 0.0:
-        q = wp.hash_grid_query(grid, x, reach)
-        j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            total += ball_term(x - centres[j], j, radii, shapes, cutoff_radii)
+        total = grid_field(grid, reach, 0, centres, radii, shapes, cutoff_radii, x)
     else:
         for j in range(centres.shape[0]):
             total += ball_term(x - centres[j], j, radii, shapes, 0.0)
@@ -223,12 +233,15 @@ def splat_behind_and_normals(
 @wp.kernel
 def field_normals(
     offset: int,
-    grid: wp.uint64,
+    narrow: wp.uint64,
+    narrow_reach: float,
+    wide: wp.uint64,
+    wide_reach: float,
+    wide_start: int,
     centres_view: wp.array(dtype=wp.vec3),
     radii: wp.array(dtype=float),
     shapes: wp.array(dtype=wp.mat33),
     cutoff_radii: float,
-    reach: float,
     iso: float,
     width: int,
     height: int,
@@ -242,7 +255,9 @@ def field_normals(
     (``t_front``, view depth; pixels without one are left alone), after ``steps`` Newton steps
     t += (iso - f) / (df/dt) along the ray towards the iso-surface, each at most ``max_step``: a
     sphere splat a little larger than the balls starts next to the blended surface, so one field
-    sample there already gives its orientation, which a sphere's own normal cannot."""
+    sample there already gives its orientation, which a sphere's own normal cannot. The balls come
+    narrow first: those before ``wide_start`` in the ``narrow`` grid, the few wide ones after it in
+    the ``wide`` grid (none when ``wide_reach`` <= 0), each queried with its own class's reach."""
     idx = wp.tid() + offset
     t = t_front[idx]
     if t <= 0.0 or t >= 1.0e29:
@@ -250,12 +265,16 @@ def field_normals(
     row = idx // width
     col = idx - row * width
     d = pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
-    g = field_at(grid, centres_view, radii, shapes, cutoff_radii, reach, d * t)
-    for _ in range(steps):
-        slope = g[1] * d[0] + g[2] * d[1] + g[3] * d[2]
-        if wp.abs(slope) > 1.0e-12:
-            t = t + wp.clamp((iso - g[0]) / slope, -max_step, max_step)
-            g = field_at(grid, centres_view, radii, shapes, cutoff_radii, reach, d * t)
+    g = wp.vec4(0.0, 0.0, 0.0, 0.0)
+    for step in range(steps + 1):
+        if step > 0:
+            slope = g[1] * d[0] + g[2] * d[1] + g[3] * d[2]
+            if wp.abs(slope) > 1.0e-12:
+                t = t + wp.clamp((iso - g[0]) / slope, -max_step, max_step)
+        x = d * t
+        g = grid_field(narrow, narrow_reach, 0, centres_view, radii, shapes, cutoff_radii, x)
+        if wide_reach > 0.0:
+            g += grid_field(wide, wide_reach, wide_start, centres_view, radii, shapes, cutoff_radii, x)
     n = wp.vec3(-g[1], -g[2], -g[3])
     ln = wp.length(n)
     if ln > 0.0:
