@@ -119,6 +119,9 @@ def evaluation_figures(folder: Path, results: list[dict], table: dict, methods) 
     a.set_ylabel("mean angular error (deg)")
     b.bar(methods, [100 * table[m]["under_10"] for m in methods], color="tab:green")
     b.set_ylabel("pixels under 10 deg (%)")
+    for ax in (a, b):  # seven or more method names side by side overlap unless turned
+        ax.tick_params(axis="x", labelrotation=30)
+        plt.setp(ax.get_xticklabels(), ha="right")
     fig.suptitle("held-out normal maps against the mesh")
     _save(fig, folder / "methods.png")
 
