@@ -189,7 +189,8 @@ def test_the_refined_frame_kept_on_the_device_shades_as_the_host_frame():
         np.testing.assert_array_equal(getattr(dev, name), getattr(host, name), err_msg=name)
     fluid = host.mask > 0
     np.testing.assert_allclose(dev.normals[fluid], host.normals[fluid], atol=1e-4)
-    np.testing.assert_allclose(dev.beauty, host.beauty, atol=1e-3)
+    # a specular highlight (HDR, up to about 6) multiplies the normals' rounding by its exponent
+    np.testing.assert_allclose(dev.beauty, host.beauty, rtol=3e-3, atol=1e-3)
 
 
 @pytest.mark.parametrize("height, scale", [(220, 1.0), (420, 0.5), (110, 2.0), (150, None)])
