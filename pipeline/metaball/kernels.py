@@ -83,6 +83,18 @@ def grid_field(grid: wp.uint64, reach: float, first: int, centres: wp.array(dtyp
 
 
 @wp.func
+def split_field(narrow: wp.uint64, narrow_reach: float, wide: wp.uint64, wide_reach: float, wide_start: int,
+                centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float), shapes: wp.array(dtype=wp.mat33),
+                cutoff_radii: float, x: wp.vec3) -> wp.vec4:
+    """(f, grad f) at x of balls sorted narrow first: those before ``wide_start`` in ``narrow``, the
+    rest in ``wide`` (none when ``wide_reach`` <= 0), each grid queried with its own reach."""
+    total = grid_field(narrow, narrow_reach, 0, centres, radii, shapes, cutoff_radii, x)
+    if wide_reach > 0.0:
+        total += grid_field(wide, wide_reach, wide_start, centres, radii, shapes, cutoff_radii, x)
+    return total
+
+
+@wp.func
 def field_at(grid: wp.uint64, centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float),
              shapes: wp.array(dtype=wp.mat33), cutoff_radii: float, reach: float, x: wp.vec3) -> wp.vec4:
     """(f, grad f) at x: the balls within ``reach`` from the hash grid, or all of them when
@@ -256,8 +268,7 @@ def field_normals(
     t += (iso - f) / (df/dt) along the ray towards the iso-surface, each at most ``max_step``: a
     sphere splat a little larger than the balls starts next to the blended surface, so one field
     sample there already gives its orientation, which a sphere's own normal cannot. The balls come
-    narrow first: those before ``wide_start`` in the ``narrow`` grid, the few wide ones after it in
-    the ``wide`` grid (none when ``wide_reach`` <= 0), each queried with its own class's reach."""
+    narrow first (``split_field``)."""
     idx = wp.tid() + offset
     t = t_front[idx]
     if t <= 0.0 or t >= 1.0e29:
@@ -265,16 +276,14 @@ def field_normals(
     row = idx // width
     col = idx - row * width
     d = pixel_ray(col, row, width, height, focal)  # view z = -1: t is the view depth
-    g = wp.vec4(0.0, 0.0, 0.0, 0.0)
-    for step in range(steps + 1):
-        if step > 0:
-            slope = g[1] * d[0] + g[2] * d[1] + g[3] * d[2]
-            if wp.abs(slope) > 1.0e-12:
-                t = t + wp.clamp((iso - g[0]) / slope, -max_step, max_step)
-        x = d * t
-        g = grid_field(narrow, narrow_reach, 0, centres_view, radii, shapes, cutoff_radii, x)
-        if wide_reach > 0.0:
-            g += grid_field(wide, wide_reach, wide_start, centres_view, radii, shapes, cutoff_radii, x)
+    g = split_field(narrow, narrow_reach, wide, wide_reach, wide_start, centres_view, radii, shapes, cutoff_radii,
+                    d * t)
+    for _ in range(steps):
+        slope = g[1] * d[0] + g[2] * d[1] + g[3] * d[2]
+        if wp.abs(slope) > 1.0e-12:
+            t = t + wp.clamp((iso - g[0]) / slope, -max_step, max_step)
+            g = split_field(narrow, narrow_reach, wide, wide_reach, wide_start, centres_view, radii, shapes,
+                            cutoff_radii, d * t)
     n = wp.vec3(-g[1], -g[2], -g[3])
     ln = wp.length(n)
     if ln > 0.0:
