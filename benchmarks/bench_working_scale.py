@@ -6,8 +6,8 @@ time. ``MAX_WORKING_PIXELS`` bounds that upscale by the fluid's bounding box. Th
 split SPlisHSPlasH frames of ``bench_scale.py`` at several image sizes (so several projected particle
 sizes), the refiner's time and its normal error against the mesh with each bound: none (4x at
 most), 1 MP, 0.5 MP (the default's bound) and no upscale at all, each for every particle size (the
-default upscales only particles under ``UPSCALE_BELOW_PX``, 1.6 px, which ``tune_inference.py``
-chose on the validation scene).
+default also has ``UPSCALE_BELOW_PX``, a bound on the particle size, which ``tune_inference.py``
+chooses on the validation scene; none for the shipped weights).
 
     .venv/bin/python benchmarks/bench_working_scale.py [--counts 38k 303k 1022k]
 """

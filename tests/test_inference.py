@@ -198,8 +198,8 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     """``refine`` prepares, resamples and masks only the fluid's part of a view (grown by all that
     reaches a fluid pixel, on the working scale's grid): bit for bit what the whole view gives, at a
     working scale of 1, 1/2 and 2. At 2^(1/2) no part is cut (its grid depends on the image's size).
-    Render time upscales only particles under ``UPSCALE_BELOW_PX``; lifted, the upscaled scales
-    are reached."""
+    With ``UPSCALE_BELOW_PX`` lifted (whatever the shipped default) the upscaled scales are reached;
+    below the particles' size, only a downscale is left."""
     import pipeline.methods as methods
     from pipeline.camera import Camera, look_at
     from pipeline.config import DatasetConfig
