@@ -311,3 +311,19 @@ def test_the_sky_left_on_the_device_is_the_host_sky_and_shades_alike():
     shader.close()
     for name in ("beauty", "fluid", "depth", "normals_view", "normals_world"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+
+
+def test_tonemap_table_is_within_one_code_of_the_curve():
+    """The preview's table lookup follows the exact ACES + sRGB curve to one 8-bit code over the whole
+    HDR range and at any exposure; below zero and NaN are black, +inf white."""
+    from pipeline.shading import tonemap, tonemap_exact
+
+    ramp = np.geomspace(1e-6, 1e4, 200_000, dtype=np.float32)
+    rgb = np.stack([ramp, ramp[::-1], np.linspace(0, 2, ramp.size, dtype=np.float32)], -1)[None]
+    for exposure in (0.0, -1.5, 2.0):
+        got, want = tonemap(rgb, exposure).astype(int), tonemap_exact(rgb, exposure).astype(int)
+        assert np.abs(got - want).max() <= 1
+        assert (got != want).mean() < 0.01
+        assert np.unique(got).size == 256  # every code reached: no bucket swallows a range
+    odd = np.array([[[-1.0, np.nan, -0.0], [np.inf, -np.inf, 1e30]]], np.float32)
+    np.testing.assert_array_equal(tonemap(odd), [[[0, 0, 0], [255, 0, 255]]])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -147,12 +148,39 @@ class Shader:
         self.launch.close()
 
 
-def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+def tonemap_exact(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """Linear RGB to 8-bit sRGB for previews: exposure, ACES filmic curve (Narkowicz), sRGB."""
     x = np.maximum(rgb[..., :3], 0.0) * (2.0**exposure)
     mapped = np.clip((x * (2.51 * x + 0.03)) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
     srgb = np.where(mapped <= 0.0031308, 12.92 * mapped, 1.055 * np.power(mapped, 1 / 2.4) - 0.055)
     return (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+TONEMAP_SHIFT = 13
+"""``tonemap`` looks a value up by its float32 bits shifted right this far: 10 mantissa bits, a
+relative step of 2^-10, within one 8-bit code of ``tonemap_exact`` (0.5% of a random HDR frame's
+pixels differ by one)."""
+
+
+@functools.cache
+def _tonemap_table() -> np.ndarray:
+    """The 8-bit code of every float32 bucket of ``TONEMAP_SHIFT`` bits (at its middle value):
+    negative values and NaNs give 0, +inf 255."""
+    bits = (np.arange(1 << (32 - TONEMAP_SHIFT), dtype=np.uint32) << TONEMAP_SHIFT) | (1 << (TONEMAP_SHIFT - 1))
+    with np.errstate(invalid="ignore"):  # the NaN buckets
+        values = np.nan_to_num(bits.view(np.float32).astype(np.float64), nan=0.0, posinf=3.4e38, neginf=0.0)
+    table = tonemap_exact(values.reshape(1, -1, 1).repeat(3, 2))[0, :, 0]  # float64: no overflow
+    table[np.float32(np.inf).view(np.uint32) >> TONEMAP_SHIFT] = 255  # +inf (its bucket's middle is a NaN)
+    return table
+
+
+def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
+    """``tonemap_exact`` as one table lookup of each value's float bits: a 1080p preview in a
+    fraction of the time, which the writer thread would otherwise take from the next frame."""
+    x = np.asarray(rgb[..., :3], np.float32)
+    if exposure:
+        x = x * np.float32(2.0**exposure)
+    return _tonemap_table()[x.view(np.uint32) >> TONEMAP_SHIFT]
 
 
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
