@@ -4,9 +4,9 @@ Each row is a config of ``configs/ablations/`` based on ``recipe.yaml`` (the shi
 recipe, ``configs/generalize.yaml``): ``deep-ssfr evaluate`` with ``render.weights: trained`` trains
 the variant if its checkpoint is missing and scores it on the held-out sequences at 512 px. Every
 stage caches and resumes, so a run stopped half way (Ctrl-C, the end of a session) goes on where it
-stopped when started again; ``--table`` only prints what has finished. The first row is the shipped
-weights, which the recipe trained in float32; the second is the recipe retrained as every variant is
-(bfloat16 autocast on a CPU with native bf16, ``train.mixed_precision``), the row they compare with.
+stopped when started again; ``--table`` only prints what has finished. The first row is the recipe
+trained as every variant is (bfloat16 autocast on a CPU with native bf16,
+``train.mixed_precision``), whose checkpoint is the shipped weights.
 
     .venv/bin/python benchmarks/bench_ablations.py [--only l2_content scenes_1] [--table]
 """
@@ -24,8 +24,8 @@ sys.path.insert(0, str(ROOT))
 from stages import cli  # noqa: E402
 
 ROWS = {
-    "recipe": "shipped recipe (ellipsoid input, normal + raw and blurred depth, L1 + normal constraint, 10 scenes)",
-    "retrained": "the recipe retrained as the variants are (bfloat16 autocast)",
+    "retrained": "the recipe (ellipsoid input, normal + raw and blurred depth, L1 + normal constraint, "
+                 "10 scenes, bfloat16 autocast): the shipped weights",
     "no_auxiliary": "no auxiliary depth features",
     "no_normal_loss": "no normal-constraint loss",
     "l2_content": "L2 content loss instead of L1",
