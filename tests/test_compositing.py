@@ -459,3 +459,33 @@ def test_the_motion_pass_of_the_seen_particles_is_every_particles(tmp_path):
     assert np.abs(seen_only).max() > 0.1
     changed = np.any(seen_only != frame.motion, axis=-1)
     assert changed.mean() < 1e-3, changed.mean()
+
+
+def test_half_channels_are_the_bits_numpy_would_write():
+    """The EXR's half passes, converted by torch for speed, hold numpy's float16 bits: rounding,
+    overflow to inf, subnormals, NaN and negative zero alike; the full-float depth is untouched."""
+    from pipeline.methods import RenderedFrame
+
+    rng = np.random.default_rng(3)
+    h, w = 17, 23
+    odd = np.array([np.nan, np.inf, -np.inf, -0.0, 7e4, 65519.0, 65520.0, 1e-8, 6e-5, 1 / 3], np.float32)
+
+    def values(*shape):
+        a = (rng.standard_normal(shape) * 10.0 ** rng.integers(-7, 5, shape)).astype(np.float32)
+        a.reshape(-1)[: odd.size] = odd
+        return a
+
+    frame = RenderedFrame(values(h, w, 4), values(h, w, 4), values(h, w), values(h, w, 3), values(h, w, 3),
+                          values(h, w), values(h, w), values(h, w, 4))
+    half = RenderedFrame.half_channels("all_but_depth")
+    fast, plain = frame.channels(half), frame.channels()
+    assert list(fast) == list(plain) == channel_names()
+    for name in fast:
+        if name in half:
+            assert fast[name].dtype == np.float16 and fast[name].flags.c_contiguous
+            with np.errstate(over="ignore"):
+                want = plain[name].astype(np.float16)
+            np.testing.assert_array_equal(fast[name].view(np.uint16), want.view(np.uint16))
+        else:
+            assert fast[name].dtype == np.float32
+            np.testing.assert_array_equal(fast[name], plain[name])
