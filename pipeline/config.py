@@ -315,6 +315,10 @@ class DatasetConfig:
     under ``random/``: the ellipsoid splat's inputs and the target at a random size, distance,
     elevation and field of view, so the refiner sees the particle sizes, distances and
     resolutions users bring (0: only the scene's two camera paths)."""
+    random_view_spheres: bool = False
+    """Random views also carry the sphere splat and its bilateral filter (``Z``, ``A``,
+    ``bilateral.*``), the training input of a refiner on spheres (``train.input_splat: sphere``, the
+    input ablation); off, only the ellipsoid splat the shipped refiner reads."""
     random_radius_px: tuple[float, float] = (1.0, 12.0)
     """Random views: range of the projected particle radius at the view's centre (px, log-uniform)."""
     random_size: tuple[int, int] = (256, 1024)

@@ -146,9 +146,11 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
             check()
             if target.exists():
                 continue
-            # random views are for training: the ellipsoid splat and its bilateral filter only
+            # random views are for training: the ellipsoid splat and its bilateral filter (and the
+            # sphere splat's, for a refiner on spheres)
+            spheres = ("bilateral",) if p.random_view_spheres else None
             channels = screen_space_inputs(x_views, radius, cam, p, local.ss, t, ellipsoids=ellipsoids,
-                                           **({} if every_filter else {"filters": None,
+                                           **({} if every_filter else {"filters": spheres,
                                                                        "aniso_filters": ("bilateral",)}))
             if p.target == "raytrace":
                 channels.update(raytraced_target_channels(kernels, radius, p, cam, local.ss, local.launch, device, t))

@@ -27,7 +27,8 @@ def scene_params(run: Run, scene: SceneConfig) -> DatasetConfig:
     camera paths (the recipe the shipped weights were trained with)."""
     p, t = run.config.dataset, run.config.train
     evaluated_only = scene.name in p.holdout_scenes and scene.name not in t.validation_scenes
-    return dataclasses.replace(p, random_views=0) if evaluated_only or scene.source else p
+    # without random views their splats change no file: such entries are shared by configs that differ there
+    return dataclasses.replace(p, random_views=0, random_view_spheres=False) if evaluated_only or scene.source else p
 
 
 def dataset_entry(run: Run, scene: SceneConfig, sim_key: str) -> cache.CacheEntry:

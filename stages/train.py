@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from pipeline import cache
-from pipeline.config import to_dict
+from pipeline.config import ConfigError, to_dict
 from pipeline.model import distributed
 from pipeline.model.train import TimeLimitReached, TrainingError, fit, init_path
 from stages import dataset, simulate
@@ -65,6 +65,9 @@ def train_entry(run: Run, dataset_keys: dict[str, str]) -> cache.CacheEntry:
 def ensure(run: Run, force: bool = False) -> cache.CacheEntry:
     """Train (or resume) until ``train.epochs``; returns the entry holding the checkpoints."""
     cfg = run.config.train
+    if cfg.input_splat == "sphere" and run.config.dataset.random_views and not run.config.dataset.random_view_spheres:
+        raise ConfigError(run.loaded.path, "dataset.random_view_spheres", "must be true to train on the sphere "
+                          "splat (train.input_splat: sphere): the random views carry only the ellipsoid splat")
     world = distributed.start(run.device)
     if not world.is_main:
         logging.getLogger("deep_ssfr").setLevel(logging.WARNING)  # rank 0 tells the story

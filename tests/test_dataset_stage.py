@@ -129,6 +129,35 @@ def test_random_views_cover_the_configured_ranges_and_skip_evaluated_scenes(tmp_
     assert radii and 0.6 <= min(radii) and max(radii) <= 6.0
 
 
+def test_random_views_carry_the_sphere_splat_when_a_refiner_on_spheres_trains(tmp_path, capsys):
+    """With ``random_view_spheres`` the random views also hold the sphere splat's bilateral input (the
+    input ablation's training data) and the evaluated-only scenes keep the entries of the recipe
+    without it; training on spheres without it stops with the key to set."""
+    config = shrunk_default(tmp_path, random_views=1, holdout_scenes=["merging"], validation_camera="none")
+    body = yaml.safe_load(open(config))
+    body["scenes"] = ["splash_drops", "merging"]
+    body["train"]["input_splat"] = "sphere"
+    open(config, "w").write(yaml.safe_dump(body))
+    assert cli.main(["dataset", "--config", config]) == 0
+    before = sorted(p.name for p in (tmp_path / "data" / "dataset").iterdir())
+    assert cli.main(["train", "--config", config]) == 2  # a config error, before any training
+    assert "dataset.random_view_spheres: must be true" in capsys.readouterr().err
+    body["dataset"]["random_view_spheres"] = True
+    open(config, "w").write(yaml.safe_dump(body))
+    assert cli.main(["dataset", "--config", config]) == 0
+    after = sorted(p.name for p in (tmp_path / "data" / "dataset").iterdir())
+    assert [n for n in after if n.startswith("merging")] == [n for n in before if n.startswith("merging")]
+    (entry,) = [p for p in (tmp_path / "data" / "dataset").iterdir() if p.name not in before]
+    randoms = [r for r in json.loads((entry / "manifest.json").read_text())["frames"] if r["camera"] == "random"]
+    assert randoms
+    for r in randoms:
+        ch = read_exr(entry / r["file"])
+        assert {"Z", "A", "bilateral.Z", "bilateral.N.X", "aniso_bilateral.N.X"} <= set(ch) and "nrf.Z" not in ch
+        fluid = ch["A"] > 0
+        n = np.stack([ch[f"bilateral.N.{a}"] for a in "XYZ"], -1)
+        assert np.allclose(np.linalg.norm(n[fluid], axis=-1), 1, atol=1e-3) and not n[~fluid].any()
+
+
 def test_one_worker_writing_in_the_background_gives_the_files_of_two(tmp_path):
     """With one worker (as on a GPU) the views are written on a background thread while the next ones
     are made; the files must be byte for byte those of two workers writing their own."""
