@@ -2,7 +2,8 @@
 
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
 than the particles' splat), at render time views whose particles are smaller than
-``UPSCALE_BELOW_PX`` are interpolated up to the working radius, and the network may run in
+``UPSCALE_BELOW_PX`` are interpolated up to the working radius, small inputs also run mirrored
+(``FLIP_MAX_PIXELS``), and the network may run in
 bfloat16 (``render.refiner_precision``); refined pixels whose normal is shorter than
 ``render.normal_threshold`` are dropped. All of them change what the evaluation scores, so they are
 chosen here on the scene that chooses the trainer's best checkpoint (``train.validation_scenes``),
@@ -29,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import pipeline.methods as methods  # noqa: E402
+import pipeline.model.inference as inference  # noqa: E402
 from pipeline.camera import camera_for_frame  # noqa: E402
 from pipeline.dataset import CAMERAS  # noqa: E402
 from pipeline.exr import read_exr, stack  # noqa: E402
@@ -48,13 +50,17 @@ def main() -> None:
     parser.add_argument("--below", type=float, nargs="+", default=[0.0, 0.8, 1.0, 1.25, 1.5, float("inf")],
                         help="UPSCALE_BELOW_PX values (0: never upscale, inf: always)")
     parser.add_argument("--precisions", nargs="+", default=["float32", "bfloat16"], choices=["float32", "bfloat16"])
+    parser.add_argument("--flips", type=float, nargs="+", default=[],
+                        help="FLIP_MAX_PIXELS values (0: one pass, inf: every input also mirrored)")
     parser.add_argument("--thresholds", type=float, nargs="+", default=[],
                         help="render.normal_threshold values (the refined normal's shortest kept length)")
     args = parser.parse_args()
     wp.config.quiet = True
-    defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX}
+    defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX,
+                "flip": inference.FLIP_MAX_PIXELS}
     settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below]
-                + [("precision", v) for v in args.precisions] + [("threshold", v) for v in args.thresholds])
+                + [("precision", v) for v in args.precisions] + [("threshold", v) for v in args.thresholds]
+                + [("flip", v) for v in args.flips])
     scores: dict = {}
     radii: dict[int, list[float]] = {}
     for size in args.sizes:
@@ -77,6 +83,7 @@ def main() -> None:
                     for key, value in settings:
                         methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
                         methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
+                        inference.FLIP_MAX_PIXELS = value if key == "flip" else defaults["flip"]
                         refiner = refiners[value if key == "precision" else "auto"]
                         n, mask, _ = methods.refine(refiner, ch, value if key == "threshold" else threshold,
                                                     cam.focal_px, radius)
@@ -87,6 +94,7 @@ def main() -> None:
                         got["iou"].append(iou(mask, t_mask))
         print(f"  {size} px done", flush=True)
     methods.REFINED_REACH_PX, methods.UPSCALE_BELOW_PX = defaults["reach"], defaults["below"]
+    inference.FLIP_MAX_PIXELS = defaults["flip"]
     print(f"\nvalidation scenes of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
           f"missed, IoU; defaults: reach {defaults['reach']} px, upscale below {defaults['below']:g} px, "
           f"precision {str(refiners['auto'].dtype).removeprefix('torch.')}")
