@@ -3,8 +3,10 @@
 EXR compression (zlib), PNG encoding and file I/O release the GIL for most of their time, so on
 two cores the writer mostly uses time the compute kernels leave idle. At most ``max_pending`` frames
 wait, which bounds memory and surfaces a failed write (disk full, read-only) within two frames.
-The thread is a daemon: an interrupted run exits without waiting for the write in progress, whose
-output is a temporary file until its rename, so nothing half-written is ever taken as done.
+An interrupted run drops the writes not yet started but waits for the one in progress (a fraction of
+a second): that write runs native code (torch, OpenEXR) which must not be running while the
+interpreter tears those libraries down (C++ ``terminate`` and exit 134, seen about one Ctrl-C in three).
+Each output is a temporary file until its rename, so nothing half-written is ever taken as done.
 """
 
 from __future__ import annotations
@@ -59,11 +61,12 @@ class BackgroundWriter:
             self._thread.join()
 
     def cancel(self) -> None:
-        """Drop the writes not yet started and stop without waiting for the one in progress."""
+        """Drop the writes not yet started and stop once the one in progress has finished."""
         for future in self._pending:
             future.cancel()
         self._pending.clear()
         self._queue.put(None)
+        self._thread.join()
 
     def __enter__(self) -> BackgroundWriter:
         return self

@@ -98,6 +98,12 @@ def quiet_warp() -> None:
     wp.config.log_level = wp.LOG_WARNING
 
 
+def _say(line: str) -> None:
+    """Write one line to stderr in a single call, so a writer thread's log line cannot land inside it."""
+    sys.stderr.write(line + "\n")
+    sys.stderr.flush()
+
+
 def stage_main(stage: str, body: Callable[[], None]) -> int:
     """Run a stage body, turning known failures into a one-line message and an exit code.
 
@@ -111,12 +117,12 @@ def stage_main(stage: str, body: Callable[[], None]) -> int:
     try:
         body()
     except ConfigError as exc:
-        print(f"{stage}: config error: {exc}", file=sys.stderr)
+        _say(f"{stage}: config error: {exc}")
         return 2
     except (StageError, CacheError, ValueError, RuntimeError, FileNotFoundError) as exc:
         if os.environ.get("DEEP_SSFR_DEBUG"):
             raise
-        print(f"{stage}: error: {exc}", file=sys.stderr)
+        _say(f"{stage}: error: {exc}")
         return 1
     except OSError as exc:
         # disk full, read-only file system, permissions: name the stage, the path and the cause
@@ -124,12 +130,12 @@ def stage_main(stage: str, body: Callable[[], None]) -> int:
             raise
         where = f" ({exc.filename})" if exc.filename else ""
         cause = exc.strerror or str(exc)
-        print(f"{stage}: error: {cause}{where}; finished outputs are kept: once that is fixed, the same command "
-              "resumes", file=sys.stderr)
+        _say(f"{stage}: error: {cause}{where}; finished outputs are kept: once that is fixed, the same command "
+             "resumes")
         return 1
     except KeyboardInterrupt as exc:
         how, code = ("terminated", 143) if isinstance(exc, Terminated) else ("interrupted", 130)
-        print(f"{stage}: {how}; finished work is kept and the same command resumes", file=sys.stderr)
+        _say(f"{stage}: {how}; finished work is kept and the same command resumes")
         return code
     finally:
         cache.release_all()  # a stage that stopped half way still holds its entry's lock
