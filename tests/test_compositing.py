@@ -305,6 +305,29 @@ def test_motion_pass_fills_uncovered_rims_and_keeps_the_background():
     np.testing.assert_array_equal(out[visible == 0], 0.5)
 
 
+@pytest.mark.parametrize("corner", [False, True])
+def test_the_motion_pass_on_the_fluids_box_is_the_whole_images(corner):
+    """The host pass works on the visible pixels' box grown by a pixel: the same values as filling
+    the rims over the whole image, with covered pixels outside that box (a splat wider than what
+    shows) and with the fluid touching the image's edge."""
+    from pipeline.methods import fill_rims, motion_pass
+
+    rng = np.random.default_rng(3)
+    h, w = 48, 64
+    yy, xx = np.mgrid[:h, :w]
+    cy, cx = (4, 5) if corner else (24, 40)
+    r = np.hypot(yy - cy, xx - cx)
+    visible = ((r < 12) & (rng.random((h, w)) < 0.9)).astype(np.float32)
+    covered = (r < 16) & (rng.random((h, w)) < 0.5)
+    fluid = rng.normal(size=(h, w, 4)).astype(np.float32)
+    background = rng.normal(size=(h, w, 4)).astype(np.float32)
+    want = background.copy()
+    whole = fill_rims(fluid, covered, visible > 0)
+    want[visible > 0] = whole[visible > 0]
+    np.testing.assert_array_equal(motion_pass(visible, fluid, covered, background), want)
+    assert (want[visible > 0] != fluid[visible > 0]).any()  # some rims were filled
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)])
 def test_particle_motion_of_tensors_is_the_host_motion(device):
     """On a GPU each particle's motion is made by torch from the uploaded positions and velocities:
