@@ -103,6 +103,28 @@ def test_sheet_kernels_flatten_along_its_normal(launch):
     assert angle.max() < 5.0, angle.max()
 
 
+def test_a_hash_grid_table_spans_the_box_within_its_cap_and_its_size_changes_no_kernel(launch, monkeypatch):
+    """A long row of 300 cells gets a table of its whole box, not one that folds far
+    cells onto the same slots; a box too big for ``MAX_HASH_CELLS`` is shrunk on every axis alike;
+    and the kernels are the same whatever the table's size (the same neighbours; a folded table only
+    adds rejected candidates and may change the order of the sums, by rounding)."""
+    import pipeline.surface as surface
+
+    cell = 2 * R
+    assert surface.hash_table_dims(np.array([299 * cell, 0.0, 0.0]), cell) == (300, 1, 1)
+    x, y, z = surface.hash_table_dims(np.array([1e3, 1e3, 1e3]), cell)
+    assert x * y * z <= surface.MAX_HASH_CELLS and x == y == z > 100
+
+    pts = _lattice_ball(0.1)
+    pts = np.concatenate([pts, pts + np.float32([0.6, 0.0, 0.0])])  # two balls: their cells fold at a small table
+    p = DatasetConfig()
+    want = [a.numpy() for a in anisotropic_kernels(pts, R, p, launch, "cpu")]
+    monkeypatch.setattr(surface, "MAX_HASH_CELLS", 8)
+    got = [a.numpy() for a in anisotropic_kernels(pts, R, p, launch, "cpu")]
+    for a, b in zip(want, got, strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * np.abs(a).max())
+
+
 def test_anisotropic_surface_is_flatter_than_isotropic(launch):
     """Same jittered sheet, same iso level: Yu & Turk's kernels against plain isotropic kernels
     of radius h without centre smoothing. Mean normal deviation on the top face: the
