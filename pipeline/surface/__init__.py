@@ -23,7 +23,7 @@ from pipeline.parallel import Launcher
 from pipeline.sph import POLY6_NORM, anisotropy_support, lattice_offsets, particle_volume, spacing
 from pipeline.surface import kernels as K
 from pipeline.timing import Timings
-from pipeline.vectors import length
+from pipeline.vectors import bounds, length
 
 if TYPE_CHECKING:
     from pipeline.screen import ScreenSpace
@@ -82,7 +82,8 @@ def hash_table_dims(extent: np.ndarray, cell: float) -> tuple[int, int, int]:
 
 def hash_grid(points: wp.array, host_points: np.ndarray, cell: float, device: str) -> wp.HashGrid:
     """A Warp hash grid over ``points`` with cells of ``cell`` (table: ``hash_table_dims``)."""
-    grid = wp.HashGrid(*hash_table_dims(host_points.max(0) - host_points.min(0), cell), device=device)
+    lo, hi = bounds(host_points)
+    grid = wp.HashGrid(*hash_table_dims(hi - lo, cell), device=device)
     grid.build(points, cell)
     return grid
 
@@ -326,8 +327,8 @@ def density_grid(centres: wp.array, kernel_g: wp.array, extents: wp.array, volum
     3D Warp array on ``device`` (on a GPU it never visits the host)."""
     c = centres.numpy()
     e = float(extents.numpy().max())
-    lo = c.min(0) - e - 2 * cell
-    hi = c.max(0) + e + 2 * cell
+    lo, hi = bounds(c)
+    lo, hi = lo - e - 2 * cell, hi + e + 2 * cell
     dims = np.maximum(np.ceil((hi - lo) / cell).astype(int) + 1, 2)
     size = int(np.prod(dims))
     buffers: list[wp.array] = []
@@ -369,7 +370,8 @@ def reconstruct(positions: np.ndarray, radius: float, p: DatasetConfig, launch: 
         centres, g, extents = kernels or anisotropic_kernels(positions, radius, p, launch, device)
     cell = radius / p.grid_cells_per_radius
     c = centres.numpy()
-    span = float((c.max(0) - c.min(0)).max() + 2 * extents.numpy().max())
+    lo, hi = bounds(c)
+    span = float((hi - lo).max() + 2 * extents.numpy().max())
     cell = max(cell, span / (p.max_grid_cells - 5))
     with timings("density"):
         grid, origin = density_grid(centres, g, extents, particle_volume(radius), cell, launch, device)
@@ -460,6 +462,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     supports = Ellipsoids(c, (np.eye(3, dtype=np.float32)[None] / e[:, None, None]).astype(np.float32), e)
     t_start = ss.splat_ellipsoids(supports, camera, normals=False).depth
     reach = float(e.max())
+    lo, hi = bounds(c)
     lookup = KernelLookup(kernels, device)
     amplitude = particle_volume(radius) * POLY6_NORM
     out_n = wp.zeros(w * h, dtype=wp.vec3, device=device)
@@ -469,7 +472,7 @@ def raytrace_maps(kernels: tuple[wp.array, wp.array, wp.array], radius: float, p
     launch(K.raymarch_density, w * h, [
         *lookup.args(), amplitude, p.iso_level, wp.vec3(*camera.eye.astype(np.float32)),
         wp.mat33(*rot.ravel()), w, h, camera.focal_px, wp.array(t_start.ravel(), dtype=float, device=device),
-        wp.vec3(*(c.min(0) - reach)), wp.vec3(*(c.max(0) + reach)), p.raytrace_step_radii * radius,
+        wp.vec3(*(lo - reach)), wp.vec3(*(hi + reach)), p.raytrace_step_radii * radius,
         p.raytrace_bisections, int(with_thickness), out_n, out_d, out_t])
     depth = out_d.numpy().reshape(h, w)
     return (out_n.numpy().reshape(h, w, 3), depth, (depth > 0).astype(np.float32),
