@@ -349,7 +349,9 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         n = np.stack([tc[f"target.N.{a}"] for a in "XYZ"], -1)
         return {"normals": n, "depth": tc["target.Z"], "mask": tc["target.A"], "thickness": sphere_thickness()}
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
-        ellipsoids = camera_ellipsoids()
+        # made where the kernels lie (host memory on the CPU) for the splat to read in place: at 1M
+        # particles on the CPU the splat takes 160 instead of 225 ms (no host copies transformed, uploaded)
+        ellipsoids = camera_ellipsoids(on_device=True)
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):
