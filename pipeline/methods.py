@@ -355,8 +355,10 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):
+            # the unfiltered ellipsoid depth's normals only for the method that shows them (at 1080p
+            # a normals pass, its download and split: about 25 ms)
             ch = screen_space_inputs(positions, radius, camera, filters, ss, t, filters=None, ellipsoids=ellipsoids,
-                                     aniso_filters=aniso_filter, on_device=keep)
+                                     aniso_filters=aniso_filter, on_device=keep, raw_normals=method == "aniso")
         if method != "refined":
             return method_maps(method, ch)
     else:

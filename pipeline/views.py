@@ -32,17 +32,18 @@ def screen_space_inputs(positions: np.ndarray, radius: float, camera: Camera, p:
                         ss: ScreenSpace, timings: Timings | None = None,
                         filters: tuple[str, ...] | None = FILTERS, ellipsoids: Ellipsoids | None = None,
                         aniso_filters: tuple[str, ...] = ANISO_FILTERS,
-                        on_device: bool = False) -> dict[str, np.ndarray]:
+                        on_device: bool = False, raw_normals: bool = True) -> dict[str, np.ndarray]:
     """Splat, filter and differentiate: the screen-space channels of one view (``filters=None``:
     no sphere splat).
 
     With ``ellipsoids`` the view is splatted a second time with the particles drawn as those,
-    adding ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N.*`` (unfiltered) and
-    ``aniso_<f>.Z``, ``aniso_<f>.N.*`` for each of ``aniso_filters``. ``on_device``: torch tensors
-    left on the screen space's device (``ScreenSpace.inputs``)."""
+    adding ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N.*`` (unfiltered; not without
+    ``raw_normals``) and ``aniso_<f>.Z``, ``aniso_<f>.N.*`` for each of ``aniso_filters``.
+    ``on_device``: torch tensors left on the screen space's device (``ScreenSpace.inputs``)."""
     out = ss.inputs(positions, radius, camera, p, filters, timings, on_device=on_device) if filters is not None else {}
     if ellipsoids is not None:
-        out.update(ss.inputs(positions, radius, camera, p, aniso_filters, timings, ellipsoids, on_device))
+        out.update(ss.inputs(positions, radius, camera, p, aniso_filters, timings, ellipsoids, on_device,
+                             raw_normals))
     for key in [k for k in out if k.endswith(".N")]:
         out.update(normal_channels(key[:-1], out.pop(key)))
     return out

@@ -319,6 +319,23 @@ def test_ellipsoids_kept_on_the_device_splat_as_the_hosts(ss, launch):
     np.testing.assert_allclose(b.normals[both], a.normals[both], atol=1e-4)
 
 
+def test_ellipsoid_inputs_without_raw_normals_leave_out_only_those(ss, launch):
+    """``raw_normals=False`` (every method but ``aniso``) skips the unfiltered ellipsoid depth's
+    normals; every other map is the same, bit for bit."""
+    from pipeline.surface import particle_ellipsoids
+
+    p = DatasetConfig()
+    rng = np.random.default_rng(13)
+    x = (rng.normal(size=(2000, 3)) * (0.06, 0.03, 0.05) + (0.01, -0.02, -0.55)).astype(np.float32)
+    cam = Camera(look_at((0.15, 0.1, -0.3), (0.01, -0.02, -0.55)), 40.0, 96, 96)
+    ell = particle_ellipsoids(x, R, p, launch)
+    full = ss.inputs(x, R, cam, p, ("bilateral",), ellipsoids=ell)
+    lean = ss.inputs(x, R, cam, p, ("bilateral",), ellipsoids=ell, raw_normals=False)
+    assert set(full) - set(lean) == {"aniso.N"} and full["aniso.A"].sum() > 500
+    for key in lean:
+        np.testing.assert_array_equal(lean[key], full[key], err_msg=key)
+
+
 def test_the_frame_shares_one_sphere_splat_between_its_filter_methods(ss, launch):
     """With ``SPHERE_FILTERS`` set for the frame, the first filter method splats once for the
     others; each method's maps must be those it makes alone, and the later ones must splat nothing."""

@@ -241,13 +241,15 @@ class ScreenSpace:
 
     def inputs(self, positions_world: np.ndarray | wp.array, radius: float, camera: Camera, p: DatasetConfig,
                filters: tuple[str, ...] = FILTERS, timings: Timings | None = None,
-               ellipsoids: Ellipsoids | None = None, on_device: bool = False) -> dict[str, np.ndarray]:
+               ellipsoids: Ellipsoids | None = None, on_device: bool = False,
+               raw_normals: bool = True) -> dict[str, np.ndarray]:
         """Splat, filter and differentiate one view: ``Z``, ``A``, ``thickness`` and per filter
         ``<f>.Z`` and ``<f>.N`` (H x W x 3).
 
         With ``ellipsoids`` the particles are drawn as those instead of spheres and every name
         takes an ``aniso`` prefix: ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N`` (the
-        normals of the unfiltered ellipsoid depth), ``aniso_<f>.Z`` and ``aniso_<f>.N``.
+        normals of the unfiltered ellipsoid depth, left out without ``raw_normals``: only the
+        ``aniso`` method shows them), ``aniso_<f>.Z`` and ``aniso_<f>.N``.
         ``on_device``: torch tensors on the device instead of host arrays (nothing comes to the
         host; on a GPU, for the refiner and the shader there)."""
         t = timings or Timings()
@@ -265,7 +267,7 @@ class ScreenSpace:
                 depth, mask, thickness = self._splat(positions_world, radius, camera)
             out = {f"{raw}Z": take(depth, shape, on_device), f"{raw}A": take(mask, shape, on_device),
                    f"{raw}thickness": take(thickness, shape, on_device)}
-        if aniso:
+        if aniso and raw_normals:
             with t("normals"):
                 out["aniso.N"] = take(self._normals(depth, camera), (*shape, 3), on_device)
         for name in filters:
