@@ -5,7 +5,7 @@ two cores the writer mostly uses time the compute kernels leave idle. At most ``
 wait, which bounds memory and surfaces a failed write (disk full, read-only) within two frames.
 An interrupted run drops the writes not yet started but waits for the one in progress (a fraction of
 a second): that write runs native code (torch, OpenEXR) which must not be running while the
-interpreter tears those libraries down (C++ ``terminate`` and exit 134, seen about one Ctrl-C in three).
+interpreter tears those libraries down (C++ ``terminate``, SIGABRT, seen about one Ctrl-C in three).
 Each output is a temporary file until its rename, so nothing half-written is ever taken as done.
 """
 
