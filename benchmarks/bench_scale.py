@@ -135,9 +135,11 @@ def sequence_overhead(count: str, frames: int, width: int, height: int) -> dict:
 
 
 def _child(args: list[str]) -> dict:
-    """Run one measurement in a fresh process (its own peak memory) and read its JSON line, with the
-    OpenMP wait policy ``deep-ssfr`` sets (``stages/cli.py``)."""
-    env = {"OMP_WAIT_POLICY": "PASSIVE", **os.environ,
+    """Run one measurement in a fresh process (its own peak memory) and read its JSON line, in the
+    environment ``deep-ssfr`` sets (``stages.cli.RUNTIME_ENV``)."""
+    from stages.cli import RUNTIME_ENV
+
+    env = {**RUNTIME_ENV, **os.environ,
            "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")}
     out = subprocess.run([sys.executable, __file__, "--one", *args], capture_output=True, text=True, cwd=ROOT,
                          env=env)

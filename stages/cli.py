@@ -9,11 +9,23 @@ import sys
 from pathlib import Path
 from typing import Annotated, Literal
 
-# Idle OpenMP threads sleep instead of spinning (read when torch loads its OpenMP runtime, so before
-# any import of torch): the renderer's EXR writer, Warp's launcher threads and torch share the cores,
-# and torch's spinning threads took them from the others. A refined 1080p frame of 38k particles:
-# 826 -> 694 ms, its network 252 -> 113 ms (benchmarks/bench_scale.py). Set it yourself to override.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+RUNTIME_ENV = {
+    # Idle OpenMP threads sleep instead of spinning (read when torch loads its OpenMP runtime): the
+    # renderer's EXR writer, Warp's launcher threads and torch share the cores, and torch's spinning
+    # threads took them from the others. A refined 1080p frame of 38k particles: 826 -> 694 ms, its
+    # network 252 -> 113 ms (benchmarks/bench_scale.py).
+    "OMP_WAIT_POLICY": "PASSIVE",
+    # numpy asks for transparent huge pages on every array of 4 MB or more. Where the kernel compacts
+    # memory for such a request (THP defrag 'madvise', the usual default) and a VM backs the huge
+    # pages lazily, each fresh page costs far more than its 4 KB pages would: a kept 33 MB copy took
+    # 60 ms instead of 14 on this 2-core VM, and a 1080p frame's motion pass 69 -> 30 ms, shading
+    # 51 -> 31 ms (its EXR written elsewhere).
+    "NUMPY_MADVISE_HUGEPAGE": "0",
+}
+"""Environment every ``deep-ssfr`` process runs with, read by the libraries as they load (so set
+before any import of numpy or torch); a value already set wins."""
+for _name, _value in RUNTIME_ENV.items():
+    os.environ.setdefault(_name, _value)
 
 import typer  # noqa: E402
 

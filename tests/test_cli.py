@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -21,6 +24,19 @@ def test_every_command_has_help(command, capsys):
     assert cli.main([*command, "--help"]) == 0
     out = capsys.readouterr().out
     assert out.startswith("Usage: deep-ssfr") and (not command or "--help" in out)
+
+
+def test_the_runtime_environment_reaches_the_libraries_as_they_load():
+    """The console script's environment (``stages.cli.RUNTIME_ENV``) is set before numpy loads:
+    numpy then asks for no huge pages. A user's own setting wins."""
+    probe = ("import stages.cli, os; from numpy._core.multiarray import _get_madvise_hugepage as g; "
+             "print(g(), os.environ['OMP_WAIT_POLICY'])")
+    env = {k: v for k, v in os.environ.items() if k not in cli.RUNTIME_ENV}
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "PASSIVE"]
+    out = subprocess.run([sys.executable, "-c", probe], env={**env, "NUMPY_MADVISE_HUGEPAGE": "1"},
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.split()[0] == "True"
 
 
 def _drop(folder, fmt: str = "ply", frames=range(1, 6)) -> None:
