@@ -159,6 +159,31 @@ def test_wide_bilateral_taps_average_their_stretch_and_follow_the_full_filter(ss
     assert angular_errors(ss.normals(sp.depth, cam), reference, inner).mean() > 10.0
 
 
+def test_bilateral_line_sums_only_where_a_line_has_wide_taps(ss):
+    """The stretches' running sums are made only on lines whose nearest pixel's kernel is wider than
+    ``bilateral_max_taps``: a sheet near in its top left quarter and four times as far elsewhere
+    (particles of 4.6 and 1.2 px) filters alike with every sum poisoned beforehand (no skipped line
+    is read), and the far quarter's lines, rows and columns alike, stay unmade."""
+    import warp as wp
+
+    cam, sp = _bumpy_sheet_depth(ss)
+    h, w = sp.depth.shape
+    depth = sp.depth.copy()
+    depth[h // 2:] *= 4.0
+    depth[: h // 2, w // 2:] *= 4.0
+    p = DatasetConfig(bilateral_max_taps=6)
+    fresh = ss.bilateral(depth, cam, R, p)
+    sums = ss._buffer("line_sums", depth.size, wp.vec3d)
+    sums.numpy()[:] = np.nan
+    again = ss.bilateral(depth, cam, R, p)
+    np.testing.assert_array_equal(again, fresh)
+    assert np.isfinite(again).all()
+    made = np.isfinite(sums.numpy()).all(axis=1).reshape(depth.shape)
+    assert made[: h // 2].all() and made[:, : w // 2].all() and not made[h // 2:, w // 2:].any()
+    full = ss.bilateral(depth, cam, R, DatasetConfig(bilateral_max_taps=0))
+    assert np.abs(again - full)[: h // 4, : w // 4].max() > 1e-3 * R  # the near quarter's stretches apply
+
+
 def test_separable_bilateral_is_the_2d_filter_without_range_weights(ss):
     """With an enormous range sigma the bilateral filter is a Gaussian of the fluid pixels; on a
     fully covered image away from the borders the separable passes equal the 2D window (a Gaussian

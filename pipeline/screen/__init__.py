@@ -198,7 +198,10 @@ class ScreenSpace:
         sums = self._buffer("line_sums", w * h, wp.vec3d)
         for axis, src, dst in ((0, depth, a), (1, a, out)):
             if p.bilateral_max_taps:
-                self.launch(F.line_prefix, h if axis == 0 else w, [src, w, h, axis, sums])
+                self.launch(F.line_prefix, h if axis == 0 else w, [src, w, h, axis, camera.focal_px, r,
+                                                                   p.bilateral_sigma_px_scale,
+                                                                   p.bilateral_max_radius_px,
+                                                                   p.bilateral_max_taps, sums])
             self.launch(F.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
         return out
 

@@ -88,6 +88,19 @@ def bilateral_filter(
     depth_out[idx] = s / ws
 
 
+@wp.func
+def bilateral_radius(d0: float, focal: float, particle_radius: float, sigma_scale: float, fixed_sigma: float,
+                     max_radius: int) -> wp.vec2:
+    """(spatial sigma, kernel radius in px) of ``bilateral_pass`` at a pixel of depth d0: a fixed
+    sigma and 3 sigma, or ``bilateral_sigma`` and 2 sigma, the radius capped at ``max_radius``."""
+    sigma = fixed_sigma
+    reach = 3.0
+    if fixed_sigma <= 0.0:
+        sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
+        reach = 2.0
+    return wp.vec2(sigma, float(wp.min(int(wp.ceil(reach * sigma)), max_radius)))
+
+
 @wp.kernel
 def line_prefix(
     offset: int,
@@ -95,11 +108,19 @@ def line_prefix(
     width: int,
     height: int,
     axis: int,
+    focal: float,
+    particle_radius: float,
+    sigma_scale: float,
+    max_radius: int,
+    max_taps: int,
     sums: wp.array(dtype=wp.vec3d),
 ):
     """Running (count, sum of depths, sum of squared depths) of the fluid pixels along one row
     (axis 0) or column (axis 1) per thread, for the stretches of ``bilateral_pass``'s wide taps.
-    float64: a float32 sum over a 4K row loses the millimetres two sums are subtracted for."""
+    float64: a float32 sum over a 4K row loses the millimetres two sums are subtracted for.
+    A line whose nearest fluid pixel's kernel needs no stretches (the widest on the line, as the
+    kernel narrows with depth) is left as it is: ``bilateral_pass`` reads a line's sums only for
+    its own pixels with stretches (a 1080p frame of particles under 5 px: none)."""
     line = wp.tid() + offset
     start = line * width
     step = 1
@@ -108,6 +129,16 @@ def line_prefix(
         start = line
         step = width
         n = height
+    nearest = float(0.0)
+    for i in range(n):
+        di = depth_in[start + i * step]
+        if di > 0.0 and (nearest == 0.0 or di < nearest):
+            nearest = di
+    if nearest == 0.0:
+        return
+    rad = int(bilateral_radius(nearest, focal, particle_radius, sigma_scale, 0.0, max_radius)[1])
+    if tap_stride(rad, max_taps) == 1:
+        return
     acc = wp.vec3d(0.0, 0.0, 0.0)
     for i in range(n):
         idx = start + i * step
@@ -183,12 +214,9 @@ def bilateral_pass(
     if d0 <= 0.0:
         return
     col, row = pixel_of(idx, width)
-    sigma = fixed_sigma
-    reach = 3.0
-    if fixed_sigma <= 0.0:
-        sigma = bilateral_sigma(d0, focal, particle_radius, sigma_scale)
-        reach = 2.0
-    rad = wp.min(int(wp.ceil(reach * sigma)), max_radius)
+    kernel = bilateral_radius(d0, focal, particle_radius, sigma_scale, fixed_sigma, max_radius)
+    sigma = kernel[0]
+    rad = int(kernel[1])
     inv_s = 1.0 / (2.0 * sigma * sigma)
     inv_r = float(0.0)
     if range_sigma > 0.0:
