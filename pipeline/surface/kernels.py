@@ -9,7 +9,7 @@ phi(x) = sum_j V_j det(G_j) P(|G_j (x - c_j)|) splatted on a grid, P the normali
 
 import warp as wp
 
-from pipeline.screen.kernels import pixel_ray
+from pipeline.screen.kernels import pixel_ray, ray_ellipsoid
 from pipeline.sph import POLY6_NORM
 
 wp.set_module_options({"enable_backward": False})
@@ -171,11 +171,11 @@ def tile_of(view: TileView, p: wp.vec3) -> wp.vec3:
                    (float(view.height) * 0.5 - view.focal * v[1] / d) / view.tile_px + float(view.border), d)
 
 
-@wp.kernel
-def nearest_front(offset: int, particle_x: wp.array(dtype=wp.vec3), view: TileView, front_out: wp.array(dtype=float)):
-    """A coarse depth buffer of the particles as spheres: each screen tile keeps the nearest sphere
-    surface through its centre."""
-    c = tile_of(view, particle_x[wp.tid() + offset])
+@wp.func
+def sphere_front(x: wp.vec3, view: TileView, front_out: wp.array(dtype=float)):
+    """Into ``front_out``: the nearest surface of the sphere of ``view.radius`` around world point x
+    through each tile centre it covers."""
+    c = tile_of(view, x)
     d = c[2]
     if d <= view.radius:
         return
@@ -190,6 +190,54 @@ def nearest_front(offset: int, particle_x: wp.array(dtype=wp.vec3), view: TileVi
             rho2 = (dx * dx + dy * dy) * world_per_tile * world_per_tile
             if rho2 < r * r:
                 wp.atomic_min(front_out, ty * view.tiles_x + tx, d - wp.sqrt(r * r - rho2))
+
+
+@wp.kernel
+def nearest_front(offset: int, particle_x: wp.array(dtype=wp.vec3), view: TileView, front_out: wp.array(dtype=float)):
+    """A coarse depth buffer of the particles as spheres: each screen tile keeps the nearest sphere
+    surface through its centre."""
+    sphere_front(particle_x[wp.tid() + offset], view, front_out)
+
+
+@wp.kernel
+def nearest_kernel_front(
+    offset: int,
+    particle_x: wp.array(dtype=wp.vec3),
+    own: wp.array(dtype=wp.uint8),
+    centres: wp.array(dtype=wp.vec3),
+    kernel_g: wp.array(dtype=wp.mat33),
+    extents: wp.array(dtype=float),
+    scale: float,
+    view: TileView,
+    front_out: wp.array(dtype=float),
+):
+    """``nearest_front`` of the particles as the ellipsoids their kernels draw (``scale G``, bounding
+    radius ``extent / scale``: ``scale_ellipsoids``), each tile keeping the nearest ellipsoid surface
+    through its centre: where kernels shrank or moved, what their spheres hid shows through. A
+    particle without its ``own`` kernel has the interior one, its sphere of radius r."""
+    i = wp.tid() + offset
+    if own[i] == wp.uint8(0):
+        sphere_front(particle_x[i], view, front_out)
+        return
+    c = view.rotation * centres[i] + view.translation
+    d = -c[2]
+    bound = extents[i] / scale
+    if d <= bound:
+        return
+    m = view.rotation * (kernel_g[i] * scale) * wp.transpose(view.rotation)
+    tile_x = (float(view.width) * 0.5 + view.focal * c[0] / d) / view.tile_px + float(view.border)
+    tile_y = (float(view.height) * 0.5 - view.focal * c[1] / d) / view.tile_px + float(view.border)
+    reach = view.focal * bound / wp.sqrt(d * d - bound * bound) / view.tile_px
+    for ty in range(wp.max(int(wp.floor(tile_y - reach)), 0), wp.min(int(wp.floor(tile_y + reach)) + 1, view.tiles_y)):
+        for tx in range(wp.max(int(wp.floor(tile_x - reach)), 0),
+                        wp.min(int(wp.floor(tile_x + reach)) + 1, view.tiles_x)):
+            px = (float(tx) + 0.5 - float(view.border)) * view.tile_px
+            py = (float(ty) + 0.5 - float(view.border)) * view.tile_px
+            ray = wp.vec3((px - float(view.width) * 0.5) / view.focal, -(py - float(view.height) * 0.5) / view.focal,
+                          -1.0)
+            hit = ray_ellipsoid(ray, c, m)
+            if hit[0] > 0.0:
+                wp.atomic_min(front_out, ty * view.tiles_x + tx, hit[0])
 
 
 @wp.kernel
