@@ -18,8 +18,9 @@ RUNTIME_ENV = {
     # numpy asks for transparent huge pages on every array of 4 MB or more. Where the kernel compacts
     # memory for such a request (THP defrag 'madvise', the usual default) and a VM backs the huge
     # pages lazily, each fresh page costs far more than its 4 KB pages would: a kept 33 MB copy took
-    # 60 ms instead of 14 on this 2-core VM, and a 1080p frame's motion pass 69 -> 30 ms, shading
-    # 51 -> 31 ms (its EXR written elsewhere).
+    # 60 ms instead of 14 on this 2-core VM. A refined 1080p frame: 38k particles 548 -> 456 ms,
+    # 303k 790 -> 760, 1M the same; a 4K frame's arrays of 130 MB fault faster in huge pages
+    # (3.6 against 4.3 s): set it to 1 for 4K sequences.
     "NUMPY_MADVISE_HUGEPAGE": "0",
 }
 """Environment every ``deep-ssfr`` process runs with, read by the libraries as they load (so set
