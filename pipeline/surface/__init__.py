@@ -198,18 +198,18 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
 
 REVEAL_PASSES = 2
 """Most passes of ``seen_kernels`` that look behind the seen particles' own ellipsoids (the 1M
-frame of bench_scale: 150k particles in the first pass, 14k and 72 in the two reveal passes)."""
+frame of bench_scale: 118k particles in the first pass, 16k and 167 in the two reveal passes)."""
 
-SEEN_DEPTH_RADII = 7.0
+SEEN_DEPTH_RADII = 5.0
 """``seen_kernels``' first pass: the particles within this many radii under the spheres' surface.
 On the validation scene, with the reveal passes, depths of 3 to 11 radii all give the refined
-normals of every particle's anisotropy to 0.015 degree (``benchmarks/bench_seen.py``); 7 keeps
-the motion pass's particles too (``REVEAL_RADII``) for about the time 5 takes."""
+normals of every particle's anisotropy to 0.015 degree (``benchmarks/bench_seen.py``); the
+anisotropy of bench_scale's 1M frame takes 614 ms at 5 radii, 862 at 11."""
 
-REVEAL_RADII = 3.0
-"""The reveal passes take the particles left as spheres within this many radii of the nearest
-ellipsoid surface: the two radii of the motion splat's depth band (``ScreenSpace.motion`` reads
-the seen particles only) and one."""
+MOTION_BAND_RADII = 5.0
+"""``seen_kernels`` also returns the particles within this many radii under the ellipsoids' surface,
+for the motion splat (``ScreenSpace.motion`` reads those only, and counts every particle within two
+radii of the filtered depth, which lies deeper): its pass is then every particle's (tested)."""
 
 
 def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera: Camera, launch: Launcher,
@@ -223,12 +223,13 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     surface of the particles as spheres, or near the silhouette, get their anisotropy
     (``near_front``). Their ellipsoids lie elsewhere than their spheres: a surface recedes (the
     centres are smoothed inwards), spray shrinks to half a radius, a thin sheet flattens, and what
-    the spheres hid shows. The particles left as spheres within ``REVEAL_RADII`` of the nearest
-    ellipsoid surface get their anisotropy too, until a pass finds none (``REVEAL_PASSES`` at
-    most). The spheres' surface alone (one support and a radius deep, as before) left the refined
-    normals of the validation scene 0.12 degree worse than every particle's anisotropy; with these
-    passes they are the same (``benchmarks/bench_seen.py``). Returns the kernels and the indices
-    of the particles that got their anisotropy."""
+    the spheres hid shows. The particles left as spheres within a radius of the nearest ellipsoid
+    surface get their anisotropy too, until a pass finds none (``REVEAL_PASSES`` at most). The
+    spheres' surface alone (one support and a radius deep, as before) left the refined normals of
+    the validation scene 0.12 degree worse than every particle's anisotropy; with these passes they
+    are the same (``benchmarks/bench_seen.py``). Returns the kernels and the indices of the
+    particles the camera may see: those that got their anisotropy and those within
+    ``MOTION_BAND_RADII`` under the ellipsoids' surface."""
     support = anisotropy_support(radius, p.aniso_kernel_radius)
     # a surface particle moves inwards by at most the smoothing times its one-sided neighbourhood's
     # mean offset (3/8 of the support for a half ball): a hidden one left a sphere in its place
@@ -242,16 +243,20 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     seen = tiles.mark(tiles.sphere_front(launch), margin, launch)
     maker = KernelMaker(positions, radius, p, launch, device)
     kernels = maker.some(maker.interior(), seen)
+    front = None
     for _ in range(REVEAL_PASSES):
-        # the particles left as spheres that the kernels' own ellipsoids show, or nearly
+        # the particles left as spheres that the kernels' own ellipsoids show
         front = tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch)
-        shown = tiles.mark(front, REVEAL_RADII * radius, launch)
+        shown = tiles.mark(front, radius, launch)
         new = shown[~np.isin(shown, seen, assume_unique=True)]
         if not len(new):
             break
         maker.some(kernels, new)
         seen = np.union1d(seen, new)
-    return kernels, seen
+    if front is None:
+        front = tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch)
+    # the last pass's surface (a few hundred particles' kernels newer at most): the motion's band
+    return kernels, np.union1d(seen, tiles.mark(front, MOTION_BAND_RADII * radius, launch))
 
 
 NEAR_FRONT_TILE_RADII = 1.0
