@@ -117,14 +117,17 @@ def main() -> None:
                         inputs, share = refined_inputs(x, radius, cam, p, ss, launch, v)
                         n, mask, _ = refine(refiner, inputs, threshold, cam.focal_px, radius)
                         e, _, missed = errors_over_reference(n, target, mask, t_mask)
-                        got = scores.setdefault((size, name, v), {"errors": [], "missed": 0, "iou": [], "share": []})
+                        got = scores.setdefault((size, name, v), {"errors": [], "missed": 0, "extra": 0, "iou": [],
+                                                                  "share": []})
                         got["errors"].append(e)
                         got["missed"] += missed
+                        got["extra"] += int((mask & ~t_mask).sum())
                         got["iou"].append(iou(mask, t_mask))
                         got["share"].append(share)
             print(f"  {size} px {name} done", flush=True)
     timing = {} if args.no_timing else anisotropy_ms(args.margins)
-    print(f"\nrefined against the mesh (mean / median deg, missed, IoU; a missed pixel scores 90 deg), with "
+    print(f"\nrefined against the mesh (mean / median deg, missed and extra pixels as shares of the mesh's, IoU; "
+          f"a missed pixel scores 90 deg), with "
           f"every particle's anisotropy and with the seen particles' (first-pass margin in particle radii, "
           f"default {surface.SEEN_DEPTH_RADII:g}; {args.reveal_passes} reveal passes)")
     names = dict.fromkeys(name for (_, name, _) in scores)
@@ -132,17 +135,18 @@ def main() -> None:
         for name in names:
             base = np.concatenate(scores[(size, name, None)]["errors"])
             print(f"\n{size} px, {name}:")
-            print(f"{'anisotropy of':>16s} {'particles':>9s} {'mean':>7s} {'median':>7s} {'missed':>7s} {'IoU':>7s} "
-                  f"{'d mean':>7s} {'d IoU':>8s} {'1M frame':>9s}")
+            print(f"{'anisotropy of':>16s} {'particles':>9s} {'mean':>7s} {'median':>7s} {'missed':>7s} {'extra':>7s} "
+                  f"{'IoU':>7s} {'d mean':>7s} {'d IoU':>8s} {'1M frame':>9s}")
             for v in variants:
                 got = scores[(size, name, v)]
                 e = np.concatenate(got["errors"])
                 label = FULL if v is None else f"margin {v:g} r"
                 ms = f"{timing[v]:7.0f} ms" if v in timing else ""
                 d_iou = np.mean(got["iou"]) - np.mean(scores[(size, name, None)]["iou"])
+                missed, extra = 100 * got["missed"] / e.size, 100 * got["extra"] / e.size
                 print(f"{label:>16s} {np.mean(got['share']):9.2f} {e.mean():7.3f} {np.median(e):7.3f} "
-                      f"{100 * got['missed'] / e.size:6.2f}% {np.mean(got['iou']):7.4f} {e.mean() - base.mean():+7.3f} "
-                      f"{d_iou:+8.4f} {ms:>9s}")
+                      f"{missed:6.2f}% {extra:6.2f}% {np.mean(got['iou']):7.4f} "
+                      f"{e.mean() - base.mean():+7.3f} {d_iou:+8.4f} {ms:>9s}")
 
 
 if __name__ == "__main__":
