@@ -136,12 +136,14 @@ class KernelMaker:
     """The anisotropy of one frame's particles on one hash grid: of every particle at once
     (``all``), or of some at a time into kernels that start as the interior one (``some``)."""
 
-    def __init__(self, positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher, device: str):
+    def __init__(self, positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher, device: str,
+                 x: wp.array | None = None):
+        """``x``: the positions already on ``device`` (float32), if they are."""
         self.n, self.launch, self.device = len(positions), launch, device
         self.h = p.aniso_kernel_radius * radius
         support = anisotropy_support(radius, p.aniso_kernel_radius)
         positions = np.ascontiguousarray(positions, np.float32)
-        self.x = wp.array(positions, dtype=wp.vec3, device=device)
+        self.x = wp.array(positions, dtype=wp.vec3, device=device) if x is None else x
         self.grid = hash_grid(self.x, positions, support / ANISOTROPY_CELLS_PER_SUPPORT, device)
         a = K.Anisotropy()
         a.support, a.kernel_radius, a.smoothing, a.kr = support, self.h, p.aniso_smoothing, p.aniso_kr
@@ -241,7 +243,7 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
         seen = np.zeros(0, np.int64)
         return anisotropic_kernels(positions, radius, p, launch, device, only=seen), seen
     seen = tiles.mark(tiles.sphere_front(launch), margin, launch)
-    maker = KernelMaker(positions, radius, p, launch, device)
+    maker = KernelMaker(positions, radius, p, launch, device, tiles.x)
     kernels = maker.some(maker.interior(), seen)
     front = None
     for _ in range(REVEAL_PASSES):
