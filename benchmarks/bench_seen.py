@@ -30,20 +30,19 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_scale import SPLITS, split_frame  # noqa: E402
+from tune_inference import scene_views  # noqa: E402
 
 import pipeline.surface as surface  # noqa: E402
-from pipeline.camera import camera_for_frame, framing_cameras  # noqa: E402
+from pipeline.camera import framing_cameras  # noqa: E402
 from pipeline.config import DatasetConfig  # noqa: E402
-from pipeline.dataset import CAMERAS  # noqa: E402
-from pipeline.exr import read_exr, stack  # noqa: E402
-from pipeline.frames import frame_name, load_frame, read_sequence_info, spread  # noqa: E402
+from pipeline.frames import frame_name, load_frame  # noqa: E402
 from pipeline.methods import refine  # noqa: E402
 from pipeline.metrics import errors_over_reference, iou  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402
 from pipeline.surface import anisotropic_kernels, kernel_ellipsoids, seen_kernels  # noqa: E402
 from pipeline.views import screen_space_inputs  # noqa: E402
-from stages import dataset, render, simulate  # noqa: E402
+from stages import render  # noqa: E402
 from stages.common import StageOptions, make_run  # noqa: E402
 
 FULL = "every particle"
@@ -101,30 +100,22 @@ def main() -> None:
         refiner = render.networks(run, ("refined",))[0]
         p, threshold = run.config.dataset, run.config.render.normal_threshold
         ss, launch = ScreenSpace("cpu"), Launcher("cpu")
-        for name in [*run.config.train.validation_scenes, *args.scenes]:
-            scene = run.loaded.scenes[name]
-            entry, sim = dataset.ensure(run, scene), simulate.ensure(run, scene)
-            radius = read_sequence_info(sim.dir).particle_radius
-            for camera in CAMERAS:
-                records = [r for r in entry.manifest()["frames"] if r["camera"] == camera]
-                for r in spread(records, args.frames):
-                    ch = read_exr(entry.dir / r["file"])
-                    cam = camera_for_frame(scene.cameras, camera, r["index"], len(records), size, size)
-                    target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
-                    x, _ = load_frame(sim.dir / frame_name(r["frame"]))
-                    x = np.asarray(x, np.float32)
-                    for v in variants:
-                        inputs, share = refined_inputs(x, radius, cam, p, ss, launch, v)
-                        n, mask, _ = refine(refiner, inputs, threshold, cam.focal_px, radius)
-                        e, _, missed = errors_over_reference(n, target, mask, t_mask)
-                        got = scores.setdefault((size, name, v), {"errors": [], "missed": 0, "extra": 0, "iou": [],
-                                                                  "share": []})
-                        got["errors"].append(e)
-                        got["missed"] += missed
-                        got["extra"] += int((mask & ~t_mask).sum())
-                        got["iou"].append(iou(mask, t_mask))
-                        got["share"].append(share)
-            print(f"  {size} px {name} done", flush=True)
+        names = [*run.config.train.validation_scenes, *args.scenes]
+        for view in scene_views(run, names, args.frames, size):
+            x = np.asarray(load_frame(view.sim_dir / frame_name(view.record["frame"]))[0], np.float32)
+            cam, radius, t_mask = view.camera, view.radius, view.target_mask
+            for v in variants:
+                inputs, share = refined_inputs(x, radius, cam, p, ss, launch, v)
+                n, mask, _ = refine(refiner, inputs, threshold, cam.focal_px, radius)
+                e, _, missed = errors_over_reference(n, view.target, mask, t_mask)
+                got = scores.setdefault((size, view.scene, v), {"errors": [], "missed": 0, "extra": 0, "iou": [],
+                                                                "share": []})
+                got["errors"].append(e)
+                got["missed"] += missed
+                got["extra"] += int((mask & ~t_mask).sum())
+                got["iou"].append(iou(mask, t_mask))
+                got["share"].append(share)
+        print(f"  {size} px done", flush=True)
     timing = {} if args.no_timing else anisotropy_ms(args.margins)
     print(f"\nrefined against the mesh (mean / median deg, missed and extra pixels as shares of the mesh's, IoU; "
           f"a missed pixel scores 90 deg), with "

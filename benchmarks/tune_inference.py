@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 import pipeline.methods as methods  # noqa: E402
 import pipeline.model.inference as inference  # noqa: E402
-from pipeline.camera import camera_for_frame  # noqa: E402
+from pipeline.camera import Camera, camera_for_frame  # noqa: E402
 from pipeline.dataset import CAMERAS  # noqa: E402
 from pipeline.exr import read_exr, stack  # noqa: E402
 from pipeline.frames import read_sequence_info, spread  # noqa: E402
@@ -40,6 +42,34 @@ from pipeline.model.scale import median_radius_px  # noqa: E402
 from stages import dataset, render, simulate  # noqa: E402
 from stages.common import StageOptions, make_run  # noqa: E402
 
+
+@dataclass(frozen=True)
+class View:
+    """One dataset view of a scene's camera path: its channels, camera, the mesh's normals and mask."""
+
+    scene: str
+    radius: float
+    sim_dir: Path
+    record: dict
+    channels: dict[str, np.ndarray]
+    camera: Camera
+    target: np.ndarray
+    target_mask: np.ndarray
+
+
+def scene_views(run, names: list[str], frames: int, size: int) -> Iterator[View]:
+    """``frames`` views of each camera path of the scenes ``names`` at ``size`` px, from the
+    dataset (built where missing), evenly spread over the path."""
+    for name in names:
+        scene = run.loaded.scenes[name]
+        entry, sim = dataset.ensure(run, scene), simulate.ensure(run, scene)
+        radius = read_sequence_info(sim.dir).particle_radius
+        for camera in CAMERAS:
+            records = [r for r in entry.manifest()["frames"] if r["camera"] == camera]
+            for r in spread(records, frames):
+                ch = read_exr(entry.dir / r["file"])
+                cam = camera_for_frame(scene.cameras, camera, r["index"], len(records), size, size)
+                yield View(name, radius, sim.dir, r, ch, cam, stack(ch, "target.N."), ch["target.A"] > 0)
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -69,29 +99,22 @@ def main() -> None:
             "dataset": {"width": size, "height": size}, "render": {"refiner_precision": p}}), ("refined",))[0]
             for p in ("auto", *args.precisions)}
         threshold = run.config.render.normal_threshold
-        for name in run.config.train.validation_scenes:
-            scene = run.loaded.scenes[name]
-            entry, sim = dataset.ensure(run, scene), simulate.ensure(run, scene)
-            radius = read_sequence_info(sim.dir).particle_radius
-            for camera in CAMERAS:
-                records = [r for r in entry.manifest()["frames"] if r["camera"] == camera]
-                for r in spread(records, args.frames):
-                    ch = read_exr(entry.dir / r["file"])
-                    cam = camera_for_frame(scene.cameras, camera, r["index"], len(records), size, size)
-                    target, t_mask = stack(ch, "target.N."), ch["target.A"] > 0
-                    radii.setdefault(size, []).append(median_radius_px(ch["Z"], cam.focal_px, radius))
-                    for key, value in settings:
-                        methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
-                        methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
-                        inference.FLIP_MAX_PIXELS = value if key == "flip" else defaults["flip"]
-                        refiner = refiners[value if key == "precision" else "auto"]
-                        n, mask, _ = methods.refine(refiner, ch, value if key == "threshold" else threshold,
-                                                    cam.focal_px, radius)
-                        e, _, missed = errors_over_reference(n, target, mask, t_mask)
-                        got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
-                        got["errors"].append(e)
-                        got["missed"] += missed
-                        got["iou"].append(iou(mask, t_mask))
+        for view in scene_views(run, list(run.config.train.validation_scenes), args.frames, size):
+            ch, cam, radius = view.channels, view.camera, view.radius
+            target, t_mask = view.target, view.target_mask
+            radii.setdefault(size, []).append(median_radius_px(ch["Z"], cam.focal_px, radius))
+            for key, value in settings:
+                methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
+                methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
+                inference.FLIP_MAX_PIXELS = value if key == "flip" else defaults["flip"]
+                refiner = refiners[value if key == "precision" else "auto"]
+                n, mask, _ = methods.refine(refiner, ch, value if key == "threshold" else threshold,
+                                            cam.focal_px, radius)
+                e, _, missed = errors_over_reference(n, target, mask, t_mask)
+                got = scores.setdefault((size, key, value), {"errors": [], "missed": 0, "iou": []})
+                got["errors"].append(e)
+                got["missed"] += missed
+                got["iou"].append(iou(mask, t_mask))
         print(f"  {size} px done", flush=True)
     methods.REFINED_REACH_PX, methods.UPSCALE_BELOW_PX = defaults["reach"], defaults["below"]
     inference.FLIP_MAX_PIXELS = defaults["flip"]
