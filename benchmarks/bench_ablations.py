@@ -24,10 +24,9 @@ sys.path.insert(0, str(ROOT))
 from stages import cli  # noqa: E402
 
 ROWS = {
-    "retrained": "the recipe (ellipsoid input, normal + depth features + thickness, L1 + normal constraint, "
+    "retrained": "the recipe (ellipsoid input, normal + raw and blurred depth, L1 + normal constraint, "
                  "10 scenes, bfloat16 autocast): the shipped weights",
     "no_auxiliary": "no auxiliary depth features",
-    "no_thickness": "no thickness input",
     "no_normal_loss": "no normal-constraint loss",
     "l2_content": "L2 content loss instead of L1",
     "scenes_1": "1 training scene",

@@ -365,11 +365,6 @@ class TrainConfig:
     its neighbourhood) and adds the projected radius in pixels, so a fluid seen from further away or
     at another resolution gives the same inputs; 'frame' normalises raw and filtered depth by the
     frame's mean and spread (the weights shipped before 2026-12)."""
-    input_thickness: bool = False
-    """With 'radius' depth features, one more input: the splat's thickness in particle radii
-    (``pipeline.model.data.thickness_feature``). The screen-space depth cannot tell a sheet or drop
-    one particle thick, where the mesh's iso-surface often leaves a hole or nothing, from the fluid's
-    body; without it the refined mask kept 3-6% more pixels than the mesh on spray scenes."""
     layers: bool = True
     """With ``input: spheres``: the channels of what lies behind the front splat (``behind``,
     ``thickness``); False zeroes them (the ablation of the depth separation)."""

@@ -140,7 +140,7 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     if window is None:
         return refine_view(refiner, channels, threshold, focal_px, radius, timings, on_device)
     ys, xs = window
-    part = {c: channels[c][ys, xs] for c in refiner.spec.channel_names()}
+    part = {c: channels[c][ys, xs] for c in (*names.normal, names.raw, names.blurred, names.fluid)}
     n, mask, depth = refine_view(refiner, part, threshold, focal_px, radius, timings, on_device)
     x = xp(n)
     h, w = channels[names.raw].shape
@@ -214,8 +214,7 @@ def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: fl
     with t("prepare"):
         source = channels
         if device_way:  # the filtered depth is on the device already (above)
-            source = {c: torch.as_tensor(channels[c], device=refiner.device)
-                      for c in refiner.spec.channel_names() if c not in (names.blurred, names.fluid)}
+            source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in (*names.normal, names.raw)}
             source[names.blurred] = blurred
         view = prepare(source, refiner.spec, focal_px, radius, max_pixels=MAX_WORKING_PIXELS,
                        upscale_below_px=UPSCALE_BELOW_PX)

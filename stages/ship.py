@@ -54,7 +54,6 @@ def card(run, entry: cache.CacheEntry, state: dict) -> dict:
             "input_features": cfg.train.input_features,
             "working_radius_px": cfg.train.working_radius_px,
             "input_splat": cfg.train.input_splat,
-            "input_thickness": cfg.train.input_thickness,
             "particle_radius_m": cfg.simulate.particle_radius,
             "dataset_keys": manifest.get("inputs", {}),
         },

@@ -160,12 +160,13 @@ def test_refine_makes_the_input_on_the_device_as_numpy_does():
     tensors must give numpy's refined normals, mask and depth to rounding: a wrong axis, a lost
     scale or a box filter of the wrong size would move them far more."""
     from pipeline.methods import refine
-    from pipeline.model.data import prepare
+    from pipeline.model.data import input_channels, prepare
 
     refiner, ch, cam = _refine_view()
     host = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=False)
     dev = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=True)
-    tensors = {c: torch.from_numpy(ch[c]) for c in refiner.spec.channel_names()}
+    names = input_channels(refiner.splat)
+    tensors = {c: torch.from_numpy(ch[c]) for c in (*names.normal, names.raw, names.blurred)}
     a, b = (prepare(c, refiner.spec, cam.focal_px, VIEW_RADIUS) for c in (ch, tensors))
     assert isinstance(b.inputs, torch.Tensor) and b.scale == a.scale != 1.0
     np.testing.assert_array_equal(b.fluid.numpy(), a.fluid)

@@ -54,21 +54,6 @@ def test_area_average_keeps_fluid_values_and_reports_coverage():
     np.testing.assert_allclose(avg[1][cov > 0], 7.0, rtol=1e-6)
 
 
-def _points_view(pts: np.ndarray, radius: float, size: int, distance: float):
-    """The ellipsoid-splat channels of particles ``pts`` seen from ``distance`` along +Z at ``size`` px."""
-    from pipeline.parallel import Launcher
-    from pipeline.screen import ScreenSpace
-
-    p = DatasetConfig(width=size, height=size)
-    ss, launch = ScreenSpace("cpu"), Launcher("cpu")
-    cam = Camera(look_at((0.0, 0.0, distance), (0, 0, 0)), 30.0, size, size)
-    ellipsoids = particle_ellipsoids(pts, radius, p, launch)
-    ch = screen_space_inputs(pts, radius, cam, p, ss, filters=None, ellipsoids=ellipsoids, aniso_filters=("bilateral",))
-    ss.close()
-    launch.close()
-    return ch, cam, radius
-
-
 def _ball_view(size: int, distance: float, radius: float = 0.01):
     """A jittered lattice ball's ellipsoid-splat channels seen from ``distance`` at ``size`` px."""
     from pipeline.parallel import Launcher
@@ -96,8 +81,8 @@ def _stats(inputs: np.ndarray, fluid: np.ndarray) -> np.ndarray:
 def test_inputs_agree_across_resolution_and_distance():
     """One ball: 96 px from 0.6 m (particles ~3.4 px), 192 px from the same place (~7 px, scaled
     down by half to the working radius of 4 px) and 192 px from twice as far (~3.4 px again). The scale-free inputs'
-    statistics agree, the thickness's too; the working image of the larger render is the smaller one's size."""
-    spec = InputSpec(True, "ellipsoid", "radius", 4.0, thickness=True)
+    statistics agree; the working image of the larger render is the smaller one's size."""
+    spec = InputSpec(True, "ellipsoid", "radius", 4.0)
     views = {}
     for name, size, distance in (("near", 96, 0.6), ("fine", 192, 0.6), ("far", 192, 1.2)):
         ch, cam, r = _ball_view(size, distance)
@@ -112,7 +97,6 @@ def test_inputs_agree_across_resolution_and_distance():
         np.testing.assert_allclose(got[:3], ref[:3], atol=0.04, err_msg=other)
         np.testing.assert_allclose(got[3:5], ref[3:5], atol=0.08, err_msg=other)
         np.testing.assert_allclose(got[5, 0], ref[5, 0], atol=0.06, err_msg=other)
-        np.testing.assert_allclose(got[6], ref[6], atol=0.04, err_msg=other)
     share = {k: v.fluid.mean() for k, v in views.items()}
     assert abs(share["fine"] - share["near"]) < 0.01 and share["near"] > 0.15
 
@@ -180,13 +164,11 @@ def test_small_particles_are_scaled_up_and_back():
                                          (InputSpec(True, "ellipsoid", "radius", 3.0), 0.708),
                                          (InputSpec(True, "ellipsoid", "radius", 12.0), 2.833),
                                          (InputSpec(False, "ellipsoid", "radius", 3.0), 0.708),
-                                         (InputSpec(True, "ellipsoid", "frame", 0.0), 1.0),
-                                         (InputSpec(True, "ellipsoid", "radius", 3.0, True), 0.708),
-                                         (InputSpec(True, "ellipsoid", "radius", 12.0, True), 2.833)])
+                                         (InputSpec(True, "ellipsoid", "frame", 0.0), 1.0)])
 def test_prepare_on_tensors_gives_numpys_input(spec, scale):
     """The refiner's input made from torch tensors (as on a GPU) is numpy's to rounding, at the
-    working scale, scaled down (area) and up (bilinear), with either depth features and the
-    thickness, and so is the scaled target; the kind of the input is kept."""
+    working scale, scaled down (area) and up (bilinear), with either depth features, and so is the
+    scaled target; the kind of the input is kept."""
     import torch
 
     ch, cam, r = _ball_view(96, 0.6)
@@ -198,25 +180,3 @@ def test_prepare_on_tensors_gives_numpys_input(spec, scale):
     np.testing.assert_array_equal(got.fluid.numpy(), want.fluid)
     np.testing.assert_allclose(got.inputs.numpy(), want.inputs, atol=5e-5)
     np.testing.assert_allclose(got.target.numpy(), want.target, atol=1e-6)
-
-
-def test_the_thickness_input_tells_a_sheet_one_particle_thick_from_the_body():
-    """A slab one particle thick and one six thick, seen face on: the thickness feature of the
-    single layer (flattened ellipsoids) is a fraction of the six layers'; the other channels are
-    those of the input without it."""
-    radius = 0.01
-    ax = np.arange(-0.1, 0.1 + 1e-9, 2 * radius)
-    views = {}
-    for layers in (1, 6):
-        z = -np.arange(layers) * 2 * radius
-        pts = np.stack(np.meshgrid(ax, ax, z, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-        ch, cam, _ = _points_view(pts, radius, 96, 0.6)
-        with_it = prepare(ch, InputSpec(True, "ellipsoid", "radius", 4.0, True), cam.focal_px, radius)
-        without = prepare(ch, InputSpec(True, "ellipsoid", "radius", 4.0), cam.focal_px, radius)
-        assert with_it.inputs.shape[0] == 7 and without.inputs.shape[0] == 6
-        np.testing.assert_array_equal(with_it.inputs[:6], without.inputs)
-        inner = with_it.fluid.copy()
-        inner[:, :30] = inner[:, 66:] = inner[:30] = inner[66:] = False  # away from the slab's edges
-        views[layers] = np.arctanh(np.median(with_it.inputs[6][inner])) * 4.0  # back to radii
-    assert 0.2 < views[1] < 1.5  # a single layer's ellipsoids are flattened: half a radius
-    assert views[6] > 6.0 * views[1]

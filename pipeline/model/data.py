@@ -10,8 +10,7 @@ then, with auxiliary features, depth features of the sphere splat (``splat="sphe
 ``aniso_bilateral.N.*``, ``aniso.Z``, ``aniso_bilateral.Z``). With ``features="radius"`` they are
 scale-free: depth differences in particle radii and the projected radius in pixels
 (``depth_features``), so the same fluid seen from further away or at another resolution gives the
-network the same inputs; with ``thickness`` one more: the splat's thickness in particle radii
-(``thickness_feature``). ``"frame"`` (the weights shipped before 2026-12) normalises the depths by
+network the same inputs. ``"frame"`` (the weights shipped before 2026-12) normalises the depths by
 the frame's mean and spread, which depends on how large the scene is against its particles. Target:
 the mesh normal (3), the zero vector where the mesh shows no fluid.
 """
@@ -64,14 +63,12 @@ Features = Literal["radius", "frame"]
 class InputSpec:
     """How a refiner's input is made from a view (recorded in its checkpoint's training config):
     ``auxiliary`` depth features, the ``splat`` kind, the depth ``features`` ('radius' or 'frame')
-    and the ``working_radius_px`` the view is scaled to (``pipeline.model.scale``; 0: never), and
-    whether the splat's ``thickness`` is one more feature (with scale-free depth features only)."""
+    and the ``working_radius_px`` the view is scaled to (``pipeline.model.scale``; 0: never)."""
 
     auxiliary: bool = True
     splat: Splat = "ellipsoid"
     features: Features = "radius"
     working_radius_px: float = 3.0
-    thickness: bool = False
 
     @classmethod
     def of(cls, cfg) -> InputSpec:
@@ -80,23 +77,16 @@ class InputSpec:
         Checkpoints from before the scale-free inputs lack the keys: frame features, no rescale."""
         get = (lambda k, d: cfg.get(k, d)) if isinstance(cfg, dict) else (lambda k, d: getattr(cfg, k, d))
         features = get("input_features", "frame")
-        auxiliary = bool(get("auxiliary_features", True))
-        return cls(auxiliary, get("input_splat", "sphere"), features,
-                   float(get("working_radius_px", 0.0)) if features == "radius" else 0.0,
-                   auxiliary and features == "radius" and bool(get("input_thickness", False)))
+        return cls(bool(get("auxiliary_features", True)), get("input_splat", "sphere"), features,
+                   float(get("working_radius_px", 0.0)) if features == "radius" else 0.0)
 
     @property
     def channels(self) -> int:
         """Generator input channels: the normal (3), with depth features 2 more ('frame') or 3
-        ('radius': bumps, relief, projected radius), and the thickness."""
+        ('radius': bumps, relief, projected radius)."""
         if not self.auxiliary:
             return 3
-        return (6 + self.thickness) if self.features == "radius" else 5
-
-    def channel_names(self) -> list[str]:
-        """The view's channels ``prepare`` reads for this input (the target's aside)."""
-        names = input_channels(self.splat)
-        return [*names.normal, names.raw, names.blurred, names.fluid, *([names.thickness] if self.thickness else [])]
+        return 6 if self.features == "radius" else 5
 
 
 BUMP_CLIP_RADII = 3.0
@@ -105,8 +95,6 @@ RELIEF_WINDOW_RADII = 6.0
 """Half width of the neighbourhood the relief feature compares the filtered depth with (projected radii)."""
 RELIEF_SCALE_RADII = 4.0
 """Relief of this many particle radii maps to tanh(1)."""
-THICKNESS_SCALE_RADII = 4.0
-"""Splat thickness of this many particle radii maps to tanh(1)."""
 
 
 def depth_features(raw, blurred, fluid, focal_px: float, radius: float):
@@ -128,14 +116,6 @@ def depth_features(raw, blurred, fluid, focal_px: float, radius: float):
     relief = x.tanh((blurred - local) / (RELIEF_SCALE_RADII * radius))
     size_px = 0.5 * x.log2(x.clip(r_px, 1e-3, None))
     return as_float32(x.where(fluid, x.stack([bumps, relief, size_px]), 0.0))
-
-
-def thickness_feature(thickness, fluid, radius: float):
-    """tanh of the splat's summed chord length in units of ``THICKNESS_SCALE_RADII`` radii (1 x H x
-    W, 0 outside the fluid): a sheet or drop one particle thick, whose mesh may show a hole or no
-    surface at all, apart from the fluid's body (the refined mask's surplus lies there)."""
-    x = xp(thickness)
-    return as_float32(x.where(fluid, x.tanh(thickness / (THICKNESS_SCALE_RADII * radius)), 0.0)[None])
 
 
 def frame_features(raw, blurred, fluid):
@@ -179,16 +159,14 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
         raise ValueError("scale-free refiner inputs need the focal length in pixels and the particle radius")
     if spec.features == "radius":
         view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target,
-                          max_pixels, upscale_below_px, channels[names.thickness] if spec.thickness else None)
+                          max_pixels, upscale_below_px)
     else:
         view = ScaledView(as_float32(normal), raw, blurred, raw > 0, 0.0, 1.0, target)
     if not spec.auxiliary:
         inputs = view.normals
     elif spec.features == "radius":
         inputs = x.concatenate([view.normals, depth_features(view.raw, view.blurred, view.fluid, view.focal_px,
-                                                             float(radius))]
-                               + ([thickness_feature(view.thickness, view.fluid, float(radius))] if spec.thickness
-                                  else []))
+                                                             float(radius))])
     else:
         inputs = x.concatenate([view.normals, frame_features(view.raw, view.blurred, view.fluid)])
     inputs = inputs.to(torch.float32).contiguous() if is_tensor(inputs) else np.ascontiguousarray(inputs, np.float32)
@@ -234,7 +212,8 @@ def held_window(frame: Frame, side: int, rng: np.random.Generator) -> Frame:
 
 def load_frame(path, spec: InputSpec) -> Frame:
     """Read the channels a training example needs from a dataset EXR, at the working scale."""
-    ch = read_exr(path, [*spec.channel_names(), *TARGET])
+    names = input_channels(spec.splat)
+    ch = read_exr(path, [*names.normal, names.raw, names.blurred, names.fluid, *TARGET])
     focal_px, radius = view_geometry(read_exr_header(path)) if spec.features == "radius" else (None, None)
     if spec.features == "radius" and (focal_px is None or radius is None):
         raise CacheError(f"{path}: no camera or particleRadius in its header (a dataset from before the scale-free "
