@@ -71,6 +71,7 @@ def scene_views(run, names: list[str], frames: int, size: int) -> Iterator[View]
                 cam = camera_for_frame(scene.cameras, camera, r["index"], len(records), size, size)
                 yield View(name, radius, sim.dir, r, ch, cam, stack(ch, "target.N."), ch["target.A"] > 0)
 
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default=str(ROOT / "configs" / "generalize.yaml"))

@@ -333,7 +333,7 @@ def test_seen_kernels_splat_the_same_ellipsoids_as_every_particles_anisotropy(la
         interior = np.all(centres == box, axis=1) & np.all(np.isclose(g, np.eye(3) / (p.aniso_kernel_radius * R),
                                                                        rtol=1e-6, atol=0), axis=(1, 2))
         own = np.flatnonzero(~interior)
-        assert np.isin(own, kept).all() and 0.2 * len(box) < interior.sum() < len(box) - len(own) + 1
+        assert np.isin(own, kept).all() and interior.sum() > 0.2 * len(box)
         for a, b in zip(full, part, strict=True):
             np.testing.assert_array_equal(a.numpy()[own], b.numpy()[own])
 
