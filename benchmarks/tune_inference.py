@@ -3,14 +3,15 @@
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
 than the particles' splat), at render time views whose particles are smaller than
 ``UPSCALE_BELOW_PX`` are interpolated up to the working radius, small inputs also run mirrored
-(``FLIP_MAX_PIXELS``), and the network may run in
+(``FLIP_MAX_PIXELS``) or in all eight quarter turns and mirrors (``TURNS_MAX_PIXELS``), and the
+network may run in
 bfloat16 (``render.refiner_precision``); refined pixels whose normal is shorter than
 ``render.normal_threshold`` are dropped. All of them change what the evaluation scores, so they are
 chosen here on the scene that chooses the trainer's best checkpoint (``train.validation_scenes``),
 never on the reported held-out sequences. This prints, for each value of one setting (the others at
 their defaults), the refined normals' mean and median error over the
 mesh's pixels (a missed pixel scores 90 degrees, as in the report), the missed share and IoU, at
-each size, for both cameras of the validation scene.
+each size, for both cameras of the validation scene (``--scenes``: of training scenes instead).
 
     .venv/bin/python benchmarks/tune_inference.py [--config configs/generalize.yaml] [--sizes 256 512 1024]
     .venv/bin/python benchmarks/tune_inference.py --sizes 128 160 192 256 512 1024 --reaches 2 3 4 \
@@ -85,14 +86,23 @@ def main() -> None:
                         help="FLIP_MAX_PIXELS values (0: one pass, inf: every input also mirrored)")
     parser.add_argument("--thresholds", type=float, nargs="+", default=[],
                         help="render.normal_threshold values (the refined normal's shortest kept length)")
+    parser.add_argument("--scenes", nargs="+", default=None,
+                        help="scenes whose camera paths score (default: the validation scenes; never held-out ones)")
+    parser.add_argument("--turns", type=float, nargs="+", default=[],
+                        help="TURNS_MAX_PIXELS values (inputs up to it run all eight turns and mirrors)")
     args = parser.parse_args()
     wp.config.quiet = True
     defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX,
-                "flip": inference.FLIP_MAX_PIXELS}
+                "flip": inference.FLIP_MAX_PIXELS, "turns": inference.TURNS_MAX_PIXELS}
     settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below]
                 + [("precision", v) for v in args.precisions] + [("threshold", v) for v in args.thresholds]
-                + [("flip", v) for v in args.flips])
+                + [("flip", v) for v in args.flips] + [("turns", v) for v in args.turns])
     scores: dict = {}
+    probe = make_run(StageOptions(config=args.config), {})
+    reported = set(probe.config.dataset.holdout_scenes) - set(probe.config.train.validation_scenes)
+    if reported & set(args.scenes or ()):
+        raise SystemExit(f"tune_inference: {', '.join(sorted(reported & set(args.scenes)))} are reported held-out "
+                         "scenes; settings are chosen on the validation and training scenes only")
     radii: dict[int, list[float]] = {}
     for size in args.sizes:
         run = make_run(StageOptions(config=args.config), {"dataset": {"width": size, "height": size}})
@@ -100,7 +110,7 @@ def main() -> None:
             "dataset": {"width": size, "height": size}, "render": {"refiner_precision": p}}), ("refined",))[0]
             for p in ("auto", *args.precisions)}
         threshold = run.config.render.normal_threshold
-        for view in scene_views(run, list(run.config.train.validation_scenes), args.frames, size):
+        for view in scene_views(run, args.scenes or list(run.config.train.validation_scenes), args.frames, size):
             ch, cam, radius = view.channels, view.camera, view.radius
             target, t_mask = view.target, view.target_mask
             radii.setdefault(size, []).append(median_radius_px(ch["Z"], cam.focal_px, radius))
@@ -108,6 +118,7 @@ def main() -> None:
                 methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
                 methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
                 inference.FLIP_MAX_PIXELS = value if key == "flip" else defaults["flip"]
+                inference.TURNS_MAX_PIXELS = value if key == "turns" else defaults["turns"]
                 refiner = refiners[value if key == "precision" else "auto"]
                 n, mask, _ = methods.refine(refiner, ch, value if key == "threshold" else threshold,
                                             cam.focal_px, radius)
@@ -118,8 +129,9 @@ def main() -> None:
                 got["iou"].append(iou(mask, t_mask))
         print(f"  {size} px done", flush=True)
     methods.REFINED_REACH_PX, methods.UPSCALE_BELOW_PX = defaults["reach"], defaults["below"]
-    inference.FLIP_MAX_PIXELS = defaults["flip"]
-    print(f"\nvalidation scenes of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
+    inference.FLIP_MAX_PIXELS, inference.TURNS_MAX_PIXELS = defaults["flip"], defaults["turns"]
+    scored = ", ".join(args.scenes) if args.scenes else "validation scenes"
+    print(f"\n{scored} of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
           f"missed, IoU; defaults: reach {defaults['reach']} px, upscale below {defaults['below']:g} px, "
           f"precision {str(refiners['auto'].dtype).removeprefix('torch.')}")
     print(f"{'setting':>18s}" + "".join(f" {f'{s} px (particles {np.median(radii[s]):.1f} px)':>30s}"
