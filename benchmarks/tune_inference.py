@@ -3,8 +3,7 @@
 The refined mask may reach ``REFINED_REACH_PX`` working pixels past the splat (the mesh is wider
 than the particles' splat), at render time views whose particles are smaller than
 ``UPSCALE_BELOW_PX`` are interpolated up to the working radius, small inputs also run mirrored
-(``FLIP_MAX_PIXELS``) or in all eight quarter turns and mirrors (``TURNS_MAX_PIXELS``), and the
-network may run in
+(``FLIP_MAX_PIXELS``), and the network may run in
 bfloat16 (``render.refiner_precision``); refined pixels whose normal is shorter than
 ``render.normal_threshold`` are dropped. All of them change what the evaluation scores, so they are
 chosen here on the scene that chooses the trainer's best checkpoint (``train.validation_scenes``),
@@ -88,15 +87,13 @@ def main() -> None:
                         help="render.normal_threshold values (the refined normal's shortest kept length)")
     parser.add_argument("--scenes", nargs="+", default=None,
                         help="scenes whose camera paths score (default: the validation scenes; never held-out ones)")
-    parser.add_argument("--turns", type=float, nargs="+", default=[],
-                        help="TURNS_MAX_PIXELS values (inputs up to it run all eight turns and mirrors)")
     args = parser.parse_args()
     wp.config.quiet = True
     defaults = {"reach": methods.REFINED_REACH_PX, "below": methods.UPSCALE_BELOW_PX,
-                "flip": inference.FLIP_MAX_PIXELS, "turns": inference.TURNS_MAX_PIXELS}
+                "flip": inference.FLIP_MAX_PIXELS}
     settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below]
                 + [("precision", v) for v in args.precisions] + [("threshold", v) for v in args.thresholds]
-                + [("flip", v) for v in args.flips] + [("turns", v) for v in args.turns])
+                + [("flip", v) for v in args.flips])
     scores: dict = {}
     probe = make_run(StageOptions(config=args.config), {})
     reported = set(probe.config.dataset.holdout_scenes) - set(probe.config.train.validation_scenes)
@@ -118,7 +115,6 @@ def main() -> None:
                 methods.REFINED_REACH_PX = value if key == "reach" else defaults["reach"]
                 methods.UPSCALE_BELOW_PX = value if key == "below" else defaults["below"]
                 inference.FLIP_MAX_PIXELS = value if key == "flip" else defaults["flip"]
-                inference.TURNS_MAX_PIXELS = value if key == "turns" else defaults["turns"]
                 refiner = refiners[value if key == "precision" else "auto"]
                 n, mask, _ = methods.refine(refiner, ch, value if key == "threshold" else threshold,
                                             cam.focal_px, radius)
@@ -129,7 +125,7 @@ def main() -> None:
                 got["iou"].append(iou(mask, t_mask))
         print(f"  {size} px done", flush=True)
     methods.REFINED_REACH_PX, methods.UPSCALE_BELOW_PX = defaults["reach"], defaults["below"]
-    inference.FLIP_MAX_PIXELS, inference.TURNS_MAX_PIXELS = defaults["flip"], defaults["turns"]
+    inference.FLIP_MAX_PIXELS = defaults["flip"]
     scored = ", ".join(args.scenes) if args.scenes else "validation scenes"
     print(f"\n{scored} of {Path(args.config).name}; refined over the mesh's pixels: mean / median (deg), "
           f"missed, IoU; defaults: reach {defaults['reach']} px, upscale below {defaults['below']:g} px, "

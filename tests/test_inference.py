@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.model.data import rotate_quarter
 from pipeline.model.inference import Refiner, fluid_window
 from pipeline.model.networks import Generator
 from pipeline.model.trainer import predict
@@ -37,7 +36,6 @@ def test_refiner_matches_plain_forward_inside_the_fluid(monkeypatch):
     import pipeline.model.inference as inference
 
     monkeypatch.setattr(inference, "FLIP_MAX_PIXELS", 0)  # one pass: the crop and folding alone
-    monkeypatch.setattr(inference, "TURNS_MAX_PIXELS", 0)
     g = _trained_looking_generator()
     x, fluid = _blob_input(150, 210, (97, 61), 20)  # sizes not multiples of the stride
     plain = predict(g, x)
@@ -58,7 +56,6 @@ def test_small_inputs_are_refined_as_the_mean_of_the_view_and_its_mirror(monkeyp
     above it, one plain pass."""
     import pipeline.model.inference as inference
 
-    monkeypatch.setattr(inference, "TURNS_MAX_PIXELS", 0)
     g = _trained_looking_generator()
     x, _ = _blob_input(96, 160, (50, 70), 30)  # multiples of the stride: no padding to mirror
     flip = np.array([-1.0, 1.0, 1.0], np.float32)
@@ -72,42 +69,6 @@ def test_small_inputs_are_refined_as_the_mean_of_the_view_and_its_mirror(monkeyp
                                atol=2e-5)
     monkeypatch.setattr(inference, "FLIP_MAX_PIXELS", 96 * 160 - 1)
     np.testing.assert_allclose(Refiner(g, crop=False)(x), plain, atol=2e-5)
-
-
-def _turned(a: np.ndarray, turns: int, mirrored: bool) -> np.ndarray:
-    """C x H x W images mirrored left to right (normal X negated), then turned ``turns`` quarter turns
-    anticlockwise with their normal's X and Y (training's ``rotate_quarter``)."""
-    if mirrored:
-        a = a[:, :, ::-1] * np.array([-1.0] + [1.0] * (len(a) - 1), np.float32)[:, None, None]
-    return rotate_quarter(np.ascontiguousarray(a), turns, (slice(0, 3),))
-
-
-def test_small_inputs_are_refined_as_the_mean_over_their_turns_and_mirrors(monkeypatch):
-    """Under ``TURNS_MAX_PIXELS`` the refiner averages the network's normals of the view's eight
-    quarter turns and mirrors, each turned back: the plain module's eight outputs so averaged, so a
-    turned or mirrored view gets exactly the turned or mirrored normals; above it, the mirrored pair
-    (``FLIP_MAX_PIXELS``) as before."""
-    import pipeline.model.inference as inference
-
-    g = _trained_looking_generator()
-    x, _ = _blob_input(96, 160, (50, 70), 30)  # multiples of the stride: no padding to turn
-    expected = np.zeros((3, 96, 160), np.float32)
-    for mirrored in (False, True):
-        for turns in range(4):
-            out = predict(g, _turned(x, turns, mirrored).copy())  # H' x W' x 3
-            back = rotate_quarter(np.moveaxis(out, -1, 0).copy(), -turns % 4, (slice(0, 3),))
-            expected += _turned(back, 0, mirrored) / 8.0
-    fast = Refiner(g, crop=False)(x)
-    np.testing.assert_allclose(fast, np.moveaxis(expected, 0, -1), atol=3e-5)
-    assert np.abs(fast - predict(g, x)).max() > 1e-3  # the untrained network is not symmetric
-    for turns, mirrored in ((1, False), (2, True), (3, False)):
-        got = Refiner(g, crop=False)(_turned(x, turns, mirrored).copy())
-        want = _turned(np.moveaxis(fast, -1, 0), turns, mirrored)
-        np.testing.assert_allclose(np.moveaxis(got, -1, 0), want, atol=3e-5)
-    monkeypatch.setattr(inference, "TURNS_MAX_PIXELS", 96 * 160 - 1)
-    plain, mirrored = predict(g, x), predict(g, _turned(x, 0, True).copy())
-    np.testing.assert_allclose(Refiner(g, crop=False)(x), 0.5 * (plain + _turned(
-        np.moveaxis(mirrored, -1, 0), 0, True).transpose(1, 2, 0)), atol=2e-5)
 
 
 def test_receptive_radius_bounds_the_influence_of_far_pixels():

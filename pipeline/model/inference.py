@@ -8,11 +8,6 @@ bounding box grown by the generator's receptive radius. Outside that box every
 output pixel would lie at least a receptive radius from any fluid pixel, so it is dropped anyway
 (the refined method keeps only pixels that splatted fluid). The box starts on a multiple of the
 generator's stride, so the stride-2 convolutions sample the same pixels as on the whole image.
-
-Small inputs, where the network is cheap, are also refined as an ensemble of the view's own
-symmetries (``TURNS_MAX_PIXELS``, ``FLIP_MAX_PIXELS``): its mirror, or all eight quarter turns and
-mirrors, each output turned back and averaged; this does change the output (chosen on the
-validation scene).
 """
 
 from __future__ import annotations
@@ -80,16 +75,6 @@ which under a quarter of a megapixel costs little; a 1080p frame of a million pa
 at the working scale) keeps one pass. 0: never."""
 
 
-TURNS_MAX_PIXELS = 1 << 16
-"""The generator's input (after the crop) runs in all eight of its quarter turns and mirrors, each
-output turned back and the eight averaged, when it has at most this many pixels: eight passes there
-cost about what the mirrored pair costs at ``FLIP_MAX_PIXELS`` (131 against 106 ms on this CPU).
-Training turns and mirrors its crops, so each is a view the network knows. On the validation scene
-it lowers the mean error by 0.1-0.3 degree at 192-1024 px views with the same IoU at 256-1024
-(``benchmarks/tune_inference.py --turns 0 65536 inf``). A 1080p frame's fluid (0.1 MP at the
-working scale for 38k particles) stays above it. 0: never."""
-
-
 class Refiner:
     """A generator prepared for inference: ``refiner(inputs, fluid) -> H x W x 3`` normals.
 
@@ -142,51 +127,14 @@ class Refiner:
         if ph or pw:
             x = nn.functional.pad(x, (0, pw, 0, ph))
         x = x.to(self.device, self.dtype).contiguous(memory_format=torch.channels_last)
-        pixels = x.shape[-2] * x.shape[-1]
-        if pixels <= TURNS_MAX_PIXELS:
-            y = self._turned_mean(x)
-        else:
-            y = self.net(x)
-            if pixels <= FLIP_MAX_PIXELS:  # and mirrored: the normal's X turns round
-                mirror = torch.ones(x.shape[1], dtype=x.dtype, device=x.device)
-                mirror[0] = -1.0
-                mirrored = self.net((x * mirror[:, None, None]).flip(-1)).flip(-1)
-                y = 0.5 * (y + mirrored * mirror[:3, None, None])
+        y = self.net(x)
+        if x.shape[-2] * x.shape[-1] <= FLIP_MAX_PIXELS:  # and mirrored: the normal's X turns round
+            mirror = torch.ones(x.shape[1], dtype=x.dtype, device=x.device)
+            mirror[0] = -1.0
+            mirrored = self.net((x * mirror[:, None, None]).flip(-1)).flip(-1)
+            y = 0.5 * (y + mirrored * mirror[:3, None, None])
         out[:, y0:y1, x0:x1] = y[0, :, : y1 - y0, : x1 - x0].float()
         return out
-
-
-    def _turned_mean(self, x: torch.Tensor) -> torch.Tensor:
-        """The network's normals of ``x`` averaged over its eight quarter turns and mirrors, each
-        output turned back (``TURNS_MAX_PIXELS``); float32."""
-        total = torch.zeros((x.shape[0], 3, *x.shape[-2:]), dtype=torch.float32, device=x.device)
-        for mirrored in (False, True):
-            v = _mirror(x) if mirrored else x
-            for turns in range(4):
-                out = _turn(self.net(_turn(v, turns).contiguous(memory_format=torch.channels_last)), -turns)
-                total += _mirror(out) if mirrored else out
-        return total / 8.0
-
-
-def _mirror(x: torch.Tensor) -> torch.Tensor:
-    """N x C x H x W images mirrored left to right, the first channel (a normal's X) negated."""
-    out = x.flip(-1)
-    out[:, 0] = -out[:, 0]
-    return out
-
-
-def _turn(x: torch.Tensor, turns: int) -> torch.Tensor:
-    """N x C x H x W images turned ``turns`` quarter turns anticlockwise (negative: clockwise), the
-    first two channels (a normal's X and Y) turned with them: one turn maps (x, y) to (-y, x)."""
-    turns %= 4
-    if turns == 0:
-        return x
-    out = torch.rot90(x, turns, dims=(-2, -1)).contiguous()
-    nx, ny = out[:, 0].clone(), out[:, 1].clone()
-    for _ in range(turns):
-        nx, ny = -ny, nx
-    out[:, 0], out[:, 1] = nx, ny
-    return out
 
 
 def load_refiner(path, device: str | torch.device = "cpu", precision: str = "auto") -> Refiner:
