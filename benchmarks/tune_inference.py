@@ -94,12 +94,13 @@ def main() -> None:
     settings = ([("reach", v) for v in args.reaches] + [("below", v) for v in args.below]
                 + [("precision", v) for v in args.precisions] + [("threshold", v) for v in args.thresholds]
                 + [("flip", v) for v in args.flips])
+    config = make_run(StageOptions(config=args.config), {}).config
+    names = args.scenes or list(config.train.validation_scenes)
+    reported = set(names) & (set(config.dataset.holdout_scenes) - set(config.train.validation_scenes))
+    if reported:
+        raise SystemExit(f"tune_inference: {', '.join(sorted(reported))} are reported held-out scenes; settings "
+                         "are chosen on the validation and training scenes only")
     scores: dict = {}
-    probe = make_run(StageOptions(config=args.config), {})
-    reported = set(probe.config.dataset.holdout_scenes) - set(probe.config.train.validation_scenes)
-    if reported & set(args.scenes or ()):
-        raise SystemExit(f"tune_inference: {', '.join(sorted(reported & set(args.scenes)))} are reported held-out "
-                         "scenes; settings are chosen on the validation and training scenes only")
     radii: dict[int, list[float]] = {}
     for size in args.sizes:
         run = make_run(StageOptions(config=args.config), {"dataset": {"width": size, "height": size}})
@@ -107,7 +108,7 @@ def main() -> None:
             "dataset": {"width": size, "height": size}, "render": {"refiner_precision": p}}), ("refined",))[0]
             for p in ("auto", *args.precisions)}
         threshold = run.config.render.normal_threshold
-        for view in scene_views(run, args.scenes or list(run.config.train.validation_scenes), args.frames, size):
+        for view in scene_views(run, names, args.frames, size):
             ch, cam, radius = view.channels, view.camera, view.radius
             target, t_mask = view.target, view.target_mask
             radii.setdefault(size, []).append(median_radius_px(ch["Z"], cam.focal_px, radius))
