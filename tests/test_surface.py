@@ -366,6 +366,30 @@ def test_seen_kernels_look_behind_spray_that_shrank(launch, monkeypatch):
     assert off(ref, alone)[1] > 3 * depth_off  # the spheres' surface alone: several times the pixels off
 
 
+def test_fronts_do_not_depend_on_the_thread_split():
+    """Each thread's chunk fills a tile buffer of its own and the nearest is kept: three threads give
+    one thread's buffers to the bit, for spheres and for kernels alike."""
+    from pipeline.parallel import Launcher
+    from pipeline.surface import FrontTiles
+
+    x = np.random.default_rng(3).uniform((-0.15, -0.15, -0.15), (0.15, 0.15, 0.15), (20000, 3)).astype(np.float32)
+    cam = Camera(look_at((0.0, 0.1, 0.8), (0, 0, 0)), 35.0, 96, 96)
+    fronts = []
+    for threads in (3, 1):
+        runner = Launcher("cpu", threads=threads, min_chunk=1024)
+        try:
+            tiles = FrontTiles.of(x, R, cam, runner, "cpu")
+            kernels = anisotropic_kernels(x, R, DatasetConfig(), runner, "cpu")
+            fronts.append((tiles.sphere_front(runner), tiles.kernel_front(kernels, np.arange(0, len(x), 2), 1.0,
+                                                                          runner)))
+            assert len(runner.split(len(x))) == threads
+        finally:
+            runner.close()
+    for many, one in zip(*fronts, strict=True):
+        np.testing.assert_array_equal(many, one)
+        assert (many < 1e29).mean() > 0.2  # the cloud covers a good part of the tiles
+
+
 def test_near_front_sees_nothing_behind_the_camera_or_outside_the_view(launch):
     x = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [5.0, 0.0, -1.0]], np.float32)
     cam = Camera(look_at((0.0, 0.0, 0.0), (0.0, 0.0, -1.0)), 40.0, 64, 64)

@@ -308,12 +308,21 @@ class FrontTiles:
 
     def _front(self, kernel: Any, inputs: list, launch: Launcher) -> np.ndarray:
         """A tile buffer of ``kernel``'s nearest surfaces (``EMPTY_FRONT`` where none)."""
-        front = wp.full(self.shape[0] * self.shape[1], K.EMPTY_FRONT, dtype=float, device=self.x.device)
-        if launch.cpu:  # chunks would race on the buffer: atomics are atomic only within one launch
-            wp.launch(kernel, len(self.x), [0, *inputs, self.view, front], device=self.x.device)
-        else:
+        size, device = self.shape[0] * self.shape[1], self.x.device
+        if not launch.cpu:
+            front = wp.full(size, K.EMPTY_FRONT, dtype=float, device=device)
             launch(kernel, len(self.x), [*inputs, self.view, front])
-        return front.numpy().reshape(self.shape)
+            return front.numpy().reshape(self.shape)
+        # chunks on the CPU would race on one buffer (atomics are atomic only within a launch): each
+        # fills its own and the nearest of them is kept, the same numbers in any order
+        fronts: list[wp.array] = []
+
+        def chunk_inputs(_: int) -> list:
+            fronts.append(wp.full(size, K.EMPTY_FRONT, dtype=float, device=device))
+            return [*inputs, self.view, fronts[-1]]
+
+        launch.map(kernel, len(self.x), chunk_inputs)
+        return np.minimum.reduce([f.numpy() for f in fronts]).reshape(self.shape)
 
     def sphere_front(self, launch: Launcher) -> np.ndarray:
         """The nearest sphere surface through each tile's centre (``nearest_front``)."""
