@@ -65,9 +65,9 @@ def measure_one(count: str, method: str, width: int, height: int, frames: int) -
     from pipeline.model import SHIPPED_WEIGHTS
     from pipeline.model.inference import load_weights
     from pipeline.renderer import SequenceRenderer
-    from pipeline.resources import keep_freed_memory
     from pipeline.shading.background import Surroundings
     from pipeline.timing import Timings
+    from stages.cli import keep_freed_memory
 
     keep_freed_memory()  # as every deep-ssfr command does
     x, v, r = split_frame(SPLITS[count])

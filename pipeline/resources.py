@@ -8,7 +8,6 @@ refuse only what clearly cannot fit.
 
 from __future__ import annotations
 
-import ctypes
 import os
 import shutil
 from pathlib import Path
@@ -21,30 +20,6 @@ RENDER_BYTES_PER_PARTICLE = 200
 """Memory a particle holds while its frame renders: positions, kernels, the hash grid."""
 EXR_BYTES_PER_PIXEL = 4
 """Disk a compressed frame EXR takes a pixel (its passes, ZIP-compressed)."""
-
-
-MALLOC_MMAP_THRESHOLD = 32 << 20
-"""Allocations up to this size come from malloc's heap rather than a mapping of their own: a 1080p
-map (8 MB a float32 channel, 25 MB a vec3) does, a 4K one (33 MB and up) keeps its own, which held
-a 4K frame's peak at 3.6-3.8 GB (64 MB here: 4.0 GB)."""
-MALLOC_TRIM_THRESHOLD = 1 << 30
-"""Freed heap memory kept for the next allocations before malloc returns it to the system."""
-
-
-def keep_freed_memory() -> None:
-    """Let glibc's malloc reuse the memory of freed image-sized arrays instead of mapping fresh pages
-    for each: a frame allocates and frees dozens of full-frame maps, and every fresh page faults on
-    first touch. bench_scale's 38k frame at 1080p: 498 -> 440 ms (mean of four runs each). By default
-    glibc maps each block over 128 kB on its own (raising that bar to the largest one freed, at most
-    32 MB) and gives freed heap back past twice the bar. Does nothing where the C library is not
-    glibc."""
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return
-    M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # malloc.h
-    mallopt(M_MMAP_THRESHOLD, MALLOC_MMAP_THRESHOLD)
-    mallopt(M_TRIM_THRESHOLD, MALLOC_TRIM_THRESHOLD)
 
 
 def available_memory() -> int:

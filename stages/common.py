@@ -16,7 +16,6 @@ from pipeline.cache import CacheError
 from pipeline.config import ConfigError
 from pipeline.config_files import Loaded, load
 from pipeline.device import choose_device
-from pipeline.resources import keep_freed_memory
 
 log = logging.getLogger("deep_ssfr")
 
@@ -113,7 +112,6 @@ def stage_main(stage: str, body: Callable[[], None]) -> int:
     """
     setup_logging()
     quiet_warp()
-    keep_freed_memory()
     main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if main else None
     try:

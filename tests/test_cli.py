@@ -40,19 +40,20 @@ def test_the_runtime_environment_reaches_the_libraries_as_they_load():
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
-def test_every_stage_serves_frame_sized_arrays_from_the_heap():
-    """``stage_main`` tunes malloc (``keep_freed_memory``): a 24 MB array, a 1080p vec3 map, then
-    comes from the heap, not from a mapping of its own that page-faults afresh every frame."""
+def test_every_command_serves_frame_sized_arrays_from_the_heap():
+    """The console script tunes malloc as it loads (``keep_freed_memory``): a 24 MB array, a 1080p
+    vec3 map, then comes from the heap, not from a mapping of its own that page-faults afresh every
+    frame."""
     probe = ("import ctypes, sys, numpy as np\n"
              "class Info(ctypes.Structure): _fields_ = [(n, ctypes.c_size_t) for n in 'arena ordblks smblks hblks "
              "hblkhd usmblks fsmblks uordblks fordblks keepcost'.split()]\n"
              "info = ctypes.CDLL('libc.so.6').mallinfo2; info.restype = Info\n"
-             "if sys.argv[1] == 'stage':\n"
-             "    from stages.common import stage_main; stage_main('probe', lambda: None)\n"
+             "if sys.argv[1] == 'cli':\n"
+             "    import stages.cli\n"
              "before = info().hblkhd; a = np.ones(3 << 20); print(info().hblkhd - before)")
     mapped = {how: int(subprocess.run([sys.executable, "-c", probe, how], capture_output=True, text=True,
-                                      check=True).stdout) for how in ("plain", "stage")}
-    assert mapped["plain"] >= 3 << 23 and mapped["stage"] == 0
+                                      check=True).stdout) for how in ("plain", "cli")}
+    assert mapped["plain"] >= 3 << 23 and mapped["cli"] == 0
 
 
 def _drop(folder, fmt: str = "ply", frames=range(1, 6)) -> None:
