@@ -380,7 +380,7 @@ def test_fronts_do_not_depend_on_the_thread_split():
         try:
             tiles = FrontTiles.of(x, R, cam, runner, "cpu")
             kernels = anisotropic_kernels(x, R, DatasetConfig(), runner, "cpu")
-            fronts.append((tiles.sphere_front(runner), tiles.kernel_front(kernels, np.arange(0, len(x), 2), 1.0,
+            fronts.append((tiles.sphere_front(runner), tiles.kernel_front(kernels, np.arange(len(x)) % 2 == 0, 1.0,
                                                                           runner)))
             assert len(runner.split(len(x))) == threads
         finally:

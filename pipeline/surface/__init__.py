@@ -169,16 +169,14 @@ class KernelMaker:
                          device=device),
                 wp.full(n, self.h, dtype=float, device=device))
 
-    def some(self, kernels: tuple[wp.array, wp.array, wp.array], only: np.ndarray) -> tuple[wp.array, ...]:
-        """The anisotropy of the particles ``only`` (indices) into ``kernels``, in place."""
-        if len(only):
+    def some(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray) -> tuple[wp.array, ...]:
+        """The anisotropy of the ``picked`` particles (a bool a particle) into ``kernels``, in place."""
+        if picked.any():
             if self._order is None:
                 # in the grid's cell order, as the full launch runs: each thread's neighbours stay in cache
                 order = wp.empty(self.n, dtype=int, device=self.device)
                 self.launch(K.grid_order, self.n, [self.grid.id, order])
                 self._order = order.numpy()
-            picked = np.zeros(self.n, bool)
-            picked[only] = True
             which = wp.array(self._order[picked[self._order]], dtype=int, device=self.device)
             self.launch(K.compute_anisotropy_of, len(which), [which, *self.args, *kernels])
         return kernels
@@ -195,7 +193,11 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
         return (wp.zeros(0, dtype=wp.vec3, device=device), wp.zeros(0, dtype=wp.mat33, device=device),
                 wp.zeros(0, dtype=float, device=device))
     maker = KernelMaker(positions, radius, p, launch, device)
-    return maker.all() if only is None else maker.some(maker.interior(), only)
+    if only is None:
+        return maker.all()
+    picked = np.zeros(len(positions), bool)
+    picked[only] = True
+    return maker.some(maker.interior(), picked)
 
 
 REVEAL_PASSES = 2
@@ -242,6 +244,7 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     if tiles is None:
         seen = np.zeros(0, np.int64)
         return anisotropic_kernels(positions, radius, p, launch, device, only=seen), seen
+    # which particles have their anisotropy, a bool each (sets of a million indices took 50 ms a frame)
     seen = tiles.mark(tiles.sphere_front(launch), margin, launch)
     maker = KernelMaker(positions, radius, p, launch, device, tiles.x)
     kernels = maker.some(maker.interior(), seen)
@@ -249,16 +252,15 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     for _ in range(REVEAL_PASSES):
         # the particles left as spheres that the kernels' own ellipsoids show
         front = tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch)
-        shown = tiles.mark(front, radius, launch)
-        new = shown[~np.isin(shown, seen, assume_unique=True)]
-        if not len(new):
+        new = tiles.mark(front, radius, launch) & ~seen
+        if not new.any():
             break
         maker.some(kernels, new)
-        seen = np.union1d(seen, new)
+        seen |= new
     if front is None:
         front = tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch)
     # the last pass's surface (a few hundred particles' kernels newer at most): the motion's band
-    return kernels, np.union1d(seen, tiles.mark(front, MOTION_BAND_RADII * radius, launch))
+    return kernels, np.flatnonzero(seen | tiles.mark(front, MOTION_BAND_RADII * radius, launch))
 
 
 NEAR_FRONT_TILE_RADII = 1.0
@@ -331,16 +333,14 @@ class FrontTiles:
     def kernel_front(self, kernels: tuple[wp.array, wp.array, wp.array], own: np.ndarray, scale: float,
                      launch: Launcher) -> np.ndarray:
         """The nearest surface of the kernels' ellipsoids (``kernel_ellipsoids``' ``scale``) through
-        each tile's centre (``nearest_kernel_front``); the particles not in ``own`` (indices) have the
+        each tile's centre (``nearest_kernel_front``); the particles not ``own`` (a bool each) have the
         interior kernel, a sphere of radius r at their own place."""
-        flags = np.zeros(len(self.x), np.uint8)
-        flags[own] = 1
-        flags = wp.array(flags, dtype=wp.uint8, device=self.x.device)
+        flags = wp.array(own.view(np.uint8), dtype=wp.uint8, device=self.x.device)
         return self._front(K.nearest_kernel_front, [self.x, flags, *kernels, float(scale)], launch)
 
     def mark(self, front: np.ndarray, depth_margin: float, launch: Launcher) -> np.ndarray:
-        """Indices of the particles within ``depth_margin`` under ``front`` (``mark_near_front``), or
-        within the silhouette's band of tiles."""
+        """Whether each particle lies within ``depth_margin`` under ``front`` (``mark_near_front``), or
+        within the silhouette's band of tiles: a bool a particle."""
         if self.band > 0:  # the silhouette's band counts as empty: every particle there is kept
             from scipy.ndimage import binary_dilation
 
@@ -349,7 +349,7 @@ class FrontTiles:
         buffer = wp.array(np.ascontiguousarray(front, np.float32).ravel(), dtype=float, device=self.x.device)
         near = wp.zeros(len(self.x), dtype=wp.uint8, device=self.x.device)
         launch(K.mark_near_front, len(self.x), [self.x, self.view, buffer, float(depth_margin), near])
-        return np.flatnonzero(near.numpy())
+        return near.numpy().astype(bool)
 
 
 def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margin: float, launch: Launcher,
@@ -366,7 +366,7 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
     tiles = FrontTiles.of(positions, radius, camera, launch, device, edge_reach)
     if tiles is None:
         return np.zeros(0, np.int64)
-    return tiles.mark(tiles.sphere_front(launch), depth_margin, launch)
+    return np.flatnonzero(tiles.mark(tiles.sphere_front(launch), depth_margin, launch))
 
 
 def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
