@@ -470,3 +470,55 @@ def test_positions_on_the_device_splat_as_host_positions(ss):
     both = (kept["A"] > 0) & (host["A"] > 0)
     for key in host:
         np.testing.assert_allclose(kept[key][both], host[key][both], atol=1e-5, err_msg=key)
+
+
+def test_splat_boxes_hold_exactly_the_pixels_a_sphere_covers():
+    """``splat_bounds``: every pixel centre whose ray meets the sphere (float64 geometry) lies in the
+    box, and the plane through the eye and each edge column (row) of pixel centres meets the sphere.
+    An off-axis sphere's silhouette is an
+    ellipse longer than its on-axis circle: for the large ones here it reaches past that circle
+    grown by a pixel, the box this one replaced."""
+    import warp as wp
+
+    import pipeline.screen.kernels as K
+
+    @wp.kernel
+    def boxes(centres: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float), focal: float, width: int,
+              height: int, out: wp.array(dtype=wp.vec4i)):
+        i = wp.tid()
+        out[i] = K.splat_bounds(centres[i], radii[i], focal, width, height, 0, height)
+
+    w, h, focal = 160, 120, 100.0
+    rng = np.random.default_rng(4)
+    n = 300
+    depth = rng.uniform(1.0, 3.0, n)
+    centres = np.stack([rng.uniform(-0.8, 0.8, n) * depth, rng.uniform(-0.6, 0.6, n) * depth, -depth], 1)
+    radii = np.where(np.arange(n) % 3 == 0, rng.uniform(0.2, 0.5, n), rng.uniform(0.003, 0.03, n))
+    got = wp.zeros(n, dtype=wp.vec4i, device="cpu")
+    wp.launch(boxes, n, [wp.array(centres.astype(np.float32), dtype=wp.vec3, device="cpu"),
+                         wp.array(radii.astype(np.float32), dtype=float, device="cpu"), focal, w, h, got],
+              device="cpu")
+    px, py = np.meshgrid(np.arange(w), np.arange(h))
+    rays = np.stack([(px + 0.5 - w / 2) / focal, -(py + 0.5 - h / 2) / focal, -np.ones_like(px, float)], -1)
+    clipped_before = 0
+    for c, r, (x0, x1, y0, y1) in zip(centres, radii, got.numpy(), strict=True):
+        # distance from the centre to each pixel's ray line
+        along = rays @ c / (rays * rays).sum(-1)
+        covered = np.linalg.norm(c - along[..., None] * rays, axis=-1) <= r
+        ys, xs = np.nonzero(covered)
+        if not len(xs):
+            continue
+        assert x0 <= xs.min() and xs.max() <= x1 and y0 <= ys.min() and ys.max() <= y1
+        # and no wider: the plane through the eye and each edge column's (row's) centres meets the sphere
+        for x in (x0, x1):
+            u = (x + 0.5 - w / 2) / focal
+            assert abs(c[0] + u * c[2]) / np.hypot(1.0, u) <= r + 0.02 / focal * -c[2]  # the box's slack: 0.01 px
+        for y in (y0, y1):
+            v = -(y + 0.5 - h / 2) / focal
+            assert abs(c[1] + v * c[2]) / np.hypot(1.0, v) <= r + 0.02 / focal * -c[2]  # the box's slack: 0.01 px
+        d = -c[2]
+        circle = focal * r / np.sqrt(d * d - r * r) + 1.0
+        cx, cy = w / 2 + focal * c[0] / d, h / 2 - focal * c[1] / d
+        clipped_before += (xs < np.floor(cx - circle)).any() or (xs > np.ceil(cx + circle)).any() \
+            or (ys < np.floor(cy - circle)).any() or (ys > np.ceil(cy + circle)).any()
+    assert clipped_before > 0

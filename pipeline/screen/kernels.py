@@ -51,18 +51,41 @@ def pixel_ray(px: int, py: int, width: int, height: int, focal: float) -> wp.vec
                    -1.0)
 
 
+SPLAT_BOX_SLACK = wp.constant(0.01)
+"""Pixels ``splat_bounds`` adds on each side of a silhouette's exact span, for float rounding (a
+pixel centre that far outside is 1e4 float32 ulps away from a hit)."""
+
+
+@wp.func
+def tangent_span(a: float, d: float, r: float) -> wp.vec2:
+    """The slopes a' / d' of the two lines through the eye tangent to the circle of radius r around
+    (a, d), d > r: along one image axis, the ray slopes that meet a sphere lie between them."""
+    k = d * d - r * r
+    s = r * wp.sqrt(a * a + k)
+    return wp.vec2((a * d - s) / k, (a * d + s) / k)
+
+
 @wp.func
 def splat_bounds(c: wp.vec3, bound: float, focal: float, width: int, height: int, row0: int, row1: int) -> wp.vec4i:
-    """Pixel box (x0, x1, y0, y1), rows clipped to [row0, row1), of a sphere of radius ``bound``
-    around the view-space point c; x1 < x0 when it is behind the camera or off the band."""
+    """Pixel box (x0, x1, y0, y1), rows clipped to [row0, row1), of the pixels whose centre rays can
+    meet the sphere of radius ``bound`` around the view-space point c: its silhouette's exact span
+    along each image axis (an off-axis sphere's silhouette is an ellipse, longer than its on-axis
+    circle). x1 < x0 when it is behind the camera or off the band."""
     d = -c[2]
     if d <= bound:
         return wp.vec4i(0, -1, 0, -1)
-    cx = float(width) * 0.5 + focal * c[0] / d
-    cy = float(height) * 0.5 - focal * c[1] / d
-    rp = focal * bound / wp.sqrt(d * d - bound * bound) + 1.0
-    return wp.vec4i(wp.max(int(wp.floor(cx - rp)), 0), wp.min(int(wp.ceil(cx + rp)), width - 1),
-                    wp.max(int(wp.floor(cy - rp)), row0), wp.min(int(wp.ceil(cy + rp)), row1 - 1))
+    u = tangent_span(c[0], d, bound)
+    v = tangent_span(c[1], d, bound)
+    # pixel px's ray has slope (px + 0.5 - w / 2) / f across, -(py + 0.5 - h / 2) / f up (pixel_ray);
+    # spans clamped to the image before they become integers (a sphere at the lens spans a lot)
+    hw = float(width) * 0.5
+    hh = float(height) * 0.5
+    x0 = wp.clamp(hw + focal * u[0] - 0.5 - SPLAT_BOX_SLACK, -1.0, float(width))
+    x1 = wp.clamp(hw + focal * u[1] - 0.5 + SPLAT_BOX_SLACK, -1.0, float(width))
+    y0 = wp.clamp(hh - focal * v[1] - 0.5 - SPLAT_BOX_SLACK, -1.0, float(height))
+    y1 = wp.clamp(hh - focal * v[0] - 0.5 + SPLAT_BOX_SLACK, -1.0, float(height))
+    return wp.vec4i(wp.max(int(wp.ceil(x0)), 0), wp.min(int(wp.floor(x1)), width - 1),
+                    wp.max(int(wp.ceil(y0)), row0), wp.min(int(wp.floor(y1)), row1 - 1))
 
 
 @wp.kernel
