@@ -161,7 +161,7 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=list(METHODS))
     ap.add_argument("--frames", type=int, default=3, help="timed frames per measurement")
     ap.add_argument("--no-4k", action="store_true", help="skip the 3840 x 2160 frame")
-    ap.add_argument("--sequence", type=int, default=6,
+    ap.add_argument("--sequence", type=int, default=11,
                     help="frames of the deep-ssfr render run timed against the renderer's own frames (<2: none)")
     ap.add_argument("--json", type=Path, help="also write every figure here")
     ap.add_argument("--one", nargs=4, metavar=("COUNT", "METHOD", "WIDTH", "HEIGHT"), help=argparse.SUPPRESS)
