@@ -197,10 +197,10 @@ def splat_supports(
     c = centres_view[i]
     rad = supports[i]
     box = splat_bounds(c, rad, focal, width, height, row0, row1)
-    cc = wp.dot(c, c) - rad * rad
+    r2 = rad * rad
     for py in range(box[2], box[3] + 1):
         for px in range(box[0], box[1] + 1):
-            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, cc)
+            hit = ray_sphere(pixel_ray(px, py, width, height, focal), c, r2)
             if hit[2] >= 0.0:
                 wp.atomic_min(t_in, py * width + px, hit[0])
                 wp.atomic_max(t_out, py * width + px, hit[1])
@@ -229,11 +229,11 @@ def splat_behind_and_normals(
     c = centres_view[i]
     rad = radii[i]
     box = splat_bounds(c, rad, focal, width, height, row0, row1)
-    cc = wp.dot(c, c) - rad * rad
+    r2 = rad * rad
     for py in range(box[2], box[3] + 1):
         for px in range(box[0], box[1] + 1):
             ray = pixel_ray(px, py, width, height, focal)
-            hit = ray_sphere(ray, c, cc)
+            hit = ray_sphere(ray, c, r2)
             idx = py * width + px
             if hit[2] >= 0.0:
                 if hit[0] == t_front[idx]:
