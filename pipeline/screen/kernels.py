@@ -57,8 +57,9 @@ def pixel_ray(px: int, py: int, width: int, height: int, focal: float) -> wp.vec
 
 
 SPLAT_BOX_SLACK = wp.constant(0.01)
-"""Pixels ``splat_bounds`` adds on each side of a silhouette's exact span, for float rounding (a
-pixel centre that far outside is 1e4 float32 ulps away from a hit)."""
+"""Pixels ``splat_bounds`` adds on each side of a silhouette's exact span, for float rounding: a
+float32 pixel coordinate of a 4K image rounds by 2e-4 px at most, so a centre that far outside the
+span cannot be hit."""
 
 
 @wp.func
