@@ -164,10 +164,10 @@ class KernelMaker:
     def interior(self) -> tuple[wp.array, wp.array, wp.array]:
         """Every particle with the kernel of a full interior neighbourhood: its own place, a sphere."""
         n, device = self.n, self.device
-        return (wp.clone(self.x),
-                wp.array(np.broadcast_to(np.eye(3, dtype=np.float32) / self.h, (n, 3, 3)), dtype=wp.mat33,
-                         device=device),
-                wp.full(n, self.h, dtype=float, device=device))
+        kernels = (wp.empty(n, dtype=wp.vec3, device=device), wp.empty(n, dtype=wp.mat33, device=device),
+                   wp.empty(n, dtype=float, device=device))
+        self.launch(K.interior_kernels, n, [self.x, float(self.h), *kernels])
+        return kernels
 
     def some(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray) -> tuple[wp.array, ...]:
         """The anisotropy of the ``picked`` particles (a bool a particle) into ``kernels``, in place."""
@@ -245,22 +245,22 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
         seen = np.zeros(0, np.int64)
         return anisotropic_kernels(positions, radius, p, launch, device, only=seen), seen
     # which particles have their anisotropy, a bool each (sets of a million indices took 50 ms a frame)
-    seen = tiles.mark(tiles.sphere_front(launch), margin, launch)
+    seen = tiles.behind(tiles.sphere_front(launch), launch) <= margin
     maker = KernelMaker(positions, radius, p, launch, device, tiles.x)
     kernels = maker.some(maker.interior(), seen)
-    front = None
+    behind = None
     for _ in range(REVEAL_PASSES):
         # the particles left as spheres that the kernels' own ellipsoids show
-        front = tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch)
-        new = tiles.mark(front, radius, launch) & ~seen
+        behind = tiles.behind(tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch), launch)
+        new = (behind <= radius) & ~seen
         if not new.any():
             break
         maker.some(kernels, new)
         seen |= new
-    if front is None:
-        front = tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch)
+    if behind is None:
+        behind = tiles.behind(tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch), launch)
     # the last pass's surface (a few hundred particles' kernels newer at most): the motion's band
-    return kernels, np.flatnonzero(seen | tiles.mark(front, MOTION_BAND_RADII * radius, launch))
+    return kernels, np.flatnonzero(seen | (behind <= MOTION_BAND_RADII * radius))
 
 
 NEAR_FRONT_TILE_RADII = 1.0
@@ -338,18 +338,19 @@ class FrontTiles:
         flags = wp.array(own.view(np.uint8), dtype=wp.uint8, device=self.x.device)
         return self._front(K.nearest_kernel_front, [self.x, flags, *kernels, float(scale)], launch)
 
-    def mark(self, front: np.ndarray, depth_margin: float, launch: Launcher) -> np.ndarray:
-        """Whether each particle lies within ``depth_margin`` under ``front`` (``mark_near_front``), or
-        within the silhouette's band of tiles: a bool a particle."""
+    def behind(self, front: np.ndarray, launch: Launcher) -> np.ndarray:
+        """How far each particle lies under ``front`` (m, ``depth_behind_front``): -1 within the
+        silhouette's band of tiles, ``EMPTY_FRONT`` where it is not seen at all; a particle within a
+        depth margin m of the front has ``behind <= m``."""
         if self.band > 0:  # the silhouette's band counts as empty: every particle there is kept
             from scipy.ndimage import binary_dilation
 
             front = front.copy()
             front[binary_dilation(front >= K.EMPTY_FRONT, iterations=self.band)] = K.EMPTY_FRONT
         buffer = wp.array(np.ascontiguousarray(front, np.float32).ravel(), dtype=float, device=self.x.device)
-        near = wp.zeros(len(self.x), dtype=wp.uint8, device=self.x.device)
-        launch(K.mark_near_front, len(self.x), [self.x, self.view, buffer, float(depth_margin), near])
-        return near.numpy().astype(bool)
+        behind = wp.empty(len(self.x), dtype=float, device=self.x.device)
+        launch(K.depth_behind_front, len(self.x), [self.x, self.view, buffer, behind])
+        return behind.numpy()
 
 
 def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margin: float, launch: Launcher,
@@ -366,7 +367,7 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
     tiles = FrontTiles.of(positions, radius, camera, launch, device, edge_reach)
     if tiles is None:
         return np.zeros(0, np.int64)
-    return np.flatnonzero(tiles.mark(tiles.sphere_front(launch), depth_margin, launch))
+    return np.flatnonzero(tiles.behind(tiles.sphere_front(launch), launch) <= depth_margin)
 
 
 def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,

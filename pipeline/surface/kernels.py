@@ -241,19 +241,18 @@ def nearest_kernel_front(
 
 
 @wp.kernel
-def mark_near_front(
+def depth_behind_front(
     offset: int,
     particle_x: wp.array(dtype=wp.vec3),
     view: TileView,
     front: wp.array(dtype=float),
-    depth_margin: float,
-    near_out: wp.array(dtype=wp.uint8),
+    behind_out: wp.array(dtype=float),
 ):
-    """1 for each particle in front of the camera, on the tiles, and within ``depth_margin`` under
-    the sphere surface seen through its tile (``nearest_front``), measured along that surface's
-    normal (from the tiles' depth differences), or next to an empty tile; 0 otherwise."""
+    """How far each particle lies under the sphere surface seen through its tile (``nearest_front``),
+    measured along that surface's normal (from the tiles' depth differences): -1 next to an empty
+    tile (the silhouette: always kept), ``EMPTY_FRONT`` behind the camera or off the tiles."""
     i = wp.tid() + offset
-    near_out[i] = wp.uint8(0)
+    behind_out[i] = EMPTY_FRONT
     c = tile_of(view, particle_x[i])
     d = c[2]
     if d <= view.radius:
@@ -268,16 +267,25 @@ def mark_near_front(
     below = front[wp.min(ty + 1, view.tiles_y - 1) * w + tx]
     above = front[wp.max(ty - 1, 0) * w + tx]
     if wp.max(wp.max(right, left), wp.max(below, above)) >= EMPTY_FRONT:  # at the silhouette: kept
-        near_out[i] = wp.uint8(1)
+        behind_out[i] = -1.0
         return
     # the depth behind the seen surface, as a distance along that surface's normal: a surface seen
     # at a grazing angle lies far behind its nearest front along the view ray, yet close to it
     world_per_tile = view.tile_px * d / view.focal
     sx = (right - left) / world_per_tile
     sy = (below - above) / world_per_tile
-    behind = (d - view.radius - front[ty * w + tx]) / wp.sqrt(1.0 + 0.25 * (sx * sx + sy * sy))
-    if behind <= depth_margin:
-        near_out[i] = wp.uint8(1)
+    behind_out[i] = (d - view.radius - front[ty * w + tx]) / wp.sqrt(1.0 + 0.25 * (sx * sx + sy * sy))
+
+
+@wp.kernel
+def interior_kernels(offset: int, particle_x: wp.array(dtype=wp.vec3), kernel_radius: float,
+                     centre_out: wp.array(dtype=wp.vec3), g_out: wp.array(dtype=wp.mat33),
+                     extent_out: wp.array(dtype=float)):
+    """The kernel of a full interior neighbourhood for every particle: its own place, G = I / h."""
+    i = wp.tid() + offset
+    centre_out[i] = particle_x[i]
+    g_out[i] = wp.identity(3, dtype=float) * (1.0 / kernel_radius)
+    extent_out[i] = kernel_radius
 
 
 @wp.kernel
