@@ -248,17 +248,22 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     seen = tiles.behind(tiles.sphere_front(launch), launch) <= margin
     maker = KernelMaker(positions, radius, p, launch, device, tiles.x)
     kernels = maker.some(maker.interior(), seen)
+
+    def under_ellipsoids() -> np.ndarray:
+        """How far each particle lies under the surface of the kernels' own ellipsoids."""
+        return tiles.behind(tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch), launch)
+
     behind = None
     for _ in range(REVEAL_PASSES):
         # the particles left as spheres that the kernels' own ellipsoids show
-        behind = tiles.behind(tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch), launch)
+        behind = under_ellipsoids()
         new = (behind <= radius) & ~seen
         if not new.any():
             break
         maker.some(kernels, new)
         seen |= new
     if behind is None:
-        behind = tiles.behind(tiles.kernel_front(kernels, seen, p.aniso_kernel_radius, launch), launch)
+        behind = under_ellipsoids()
     # the last pass's surface (a few hundred particles' kernels newer at most): the motion's band
     return kernels, np.flatnonzero(seen | (behind <= MOTION_BAND_RADII * radius))
 
