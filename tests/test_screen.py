@@ -426,6 +426,32 @@ def test_inputs_on_the_device_are_the_host_maps_as_tensors_that_later_views_leav
         assert not np.array_equal(later[next(iter(later))].numpy(), got[next(iter(got))].numpy())
 
 
+def test_host_maps_hold_their_own_memory_that_later_views_leave_alone(ss, launch):
+    """On the CPU each host map is the device buffer it was made in, handed over rather than copied:
+    the next views (every buffer name again, the same sizes) must write new buffers, not it."""
+    from pipeline.surface import particle_ellipsoids
+
+    rng = np.random.default_rng(7)
+    x = (rng.normal(size=(1200, 3)) * 0.05 + (0.0, 0.0, -0.6)).astype(np.float32)
+    p = DatasetConfig()
+    ell = particle_ellipsoids(x, R, p, launch)
+    cam, other = _camera(96), Camera(look_at((0.1, 0.1, 0.0), (0, 0, -0.6)), 40.0, 96, 96)
+    motion = np.ones((len(x), 4), np.float32)
+    first = {**ss.inputs(x, R, cam, p, filters=("bilateral", "nrf")),
+             **ss.inputs(x, R, cam, p, filters=("bilateral",), ellipsoids=ell)}
+    moved, covered = ss.motion(x, motion, R, cam)
+    kept = {key: value.copy() for key, value in first.items()}
+    kept_motion = moved.copy()
+    assert covered.any() and all(value.any() for value in kept.values())
+    ss.inputs(x, R, other, p, filters=("bilateral", "nrf"))
+    ss.inputs(x, R, other, p, filters=("bilateral",), ellipsoids=ell)
+    ss.motion(x, 2 * motion, R, other)
+    ss.splat_ellipsoids(ell, other)
+    for key, value in kept.items():
+        np.testing.assert_array_equal(first[key], value, err_msg=key)
+    np.testing.assert_array_equal(moved, kept_motion)
+
+
 def test_buffers_are_reused_while_their_size_stays_and_replaced_when_it_changes(ss, launch):
     """One device array a name: frames of one size reuse it, and a growing particle count (an
     emitter) or a new image size (the dataset's random views) replaces it instead of keeping one

@@ -104,12 +104,22 @@ class ScreenSpace:
         buf.assign(np.ascontiguousarray(depth, np.float32).ravel())
         return buf
 
-    @staticmethod
-    def _download(a: wp.array, shape: tuple[int, ...], wait: bool = True) -> np.ndarray:
+    def _download(self, a: wp.array, shape: tuple[int, ...], wait: bool = True) -> np.ndarray:
         """The buffer's pixels as a host array of their own: from a GPU one copy into page-locked
         memory (``pipeline.device.download``; without ``wait`` only queued: ``wait_for_downloads``
-        before reading); on the CPU a copy of the buffer, which the next frame overwrites."""
-        return download(a, shape, wait) if a.device.is_cuda else a.numpy().reshape(shape).copy()
+        before reading); on the CPU the buffer's memory itself, handed over (``_hand_over``)."""
+        if a.device.is_cuda:
+            return download(a, shape, wait)
+        self._hand_over(a)
+        return a.numpy().reshape(shape)
+
+    def _hand_over(self, a: wp.array) -> None:
+        """Forget the buffer ``a`` so that no later kernel writes it: its name gets a new one next
+        time. Cheaper than copying it out (a copy of a 1080p map took 5-7 ms); the host array keeps
+        the memory, which goes back to the heap with it."""
+        for name, (_, kept) in list(self._buffers.items()):
+            if kept is a:
+                del self._buffers[name]
 
     def _take(self, a: wp.array, shape: tuple[int, ...], on_device: bool, wait: bool = True):
         """The buffer's pixels as a host array (``_download``; without ``wait`` only queued, and
