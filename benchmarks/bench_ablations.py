@@ -6,7 +6,7 @@ the variant if its checkpoint is missing and scores it on the held-out sequences
 stage caches and resumes, so a run stopped half way (Ctrl-C, the end of a session) goes on where it
 stopped when started again; ``--table`` only prints what has finished. The first row is the recipe
 trained as every variant is (bfloat16 autocast on a CPU with native bf16,
-``train.mixed_precision``), whose checkpoint is the shipped weights.
+``train.mixed_precision``), whose checkpoint the shipped weights were trained further from.
 
     .venv/bin/python benchmarks/bench_ablations.py [--only l2_content scenes_1] [--table]
 """
@@ -25,7 +25,7 @@ from stages import cli  # noqa: E402
 
 ROWS = {
     "retrained": "the recipe (ellipsoid input, normal + raw and blurred depth, L1 + normal constraint, "
-                 "10 scenes, bfloat16 autocast): the shipped weights",
+                 "10 scenes, bfloat16 autocast): the shipped weights before 2026-12-07",
     "no_auxiliary": "no auxiliary depth features",
     "no_normal_loss": "no normal-constraint loss",
     "l2_content": "L2 content loss instead of L1",
