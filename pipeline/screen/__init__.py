@@ -91,8 +91,9 @@ class ScreenSpace:
 
     def _buffer(self, name: str, n: int, dtype=float) -> wp.array:
         """The device array ``name``, reused while its size and type stay (frames of one image
-        size, views of one particle count) and replaced when they change: one array a name, so an
-        emitter's growing particle count or the dataset's random image sizes leave no array behind."""
+        size, views of one particle count) and replaced when they change, or once the host was
+        handed it (``_hand_over``): one array a name, so an emitter's growing particle count or the
+        dataset's random image sizes leave no array behind."""
         key = (n, dtype)
         kept = self._buffers.get(name)
         if kept is None or kept[0] != key:
