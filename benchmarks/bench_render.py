@@ -89,7 +89,8 @@ def measure(x: np.ndarray, r: float, size: int, p: DatasetConfig, ss: ScreenSpac
     row = {k: t.mean_ms(k) for k in ("anisotropy", "splat", "bilateral", "normals", "refiner", "shading", "exr",
                                      "inputs", "prepare", "network", "post")}
     row["inputs"] += row["anisotropy"]
-    ellipsoids = particle_ellipsoids(x, r, p, launch) if refiner.splat == "ellipsoid" else None
+    ellipsoids = (particle_ellipsoids(x, r, p, launch, density=refiner.spec.density) if refiner.splat == "ellipsoid"
+                  else None)
     channels = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",), ellipsoids=ellipsoids,
                                    aniso_filters=("bilateral",))
     inputs = prepare(channels, refiner.spec, cam.focal_px, r).inputs

@@ -40,7 +40,7 @@ from pipeline.methods import refine  # noqa: E402
 from pipeline.metrics import errors_over_reference, iou  # noqa: E402
 from pipeline.parallel import Launcher  # noqa: E402
 from pipeline.screen import ScreenSpace  # noqa: E402
-from pipeline.surface import anisotropic_kernels, kernel_ellipsoids, seen_kernels  # noqa: E402
+from pipeline.surface import anisotropic_kernels, kernel_densities, kernel_ellipsoids, seen_kernels  # noqa: E402
 from pipeline.views import screen_space_inputs  # noqa: E402
 from stages import render  # noqa: E402
 from stages.common import StageOptions, make_run  # noqa: E402
@@ -51,14 +51,18 @@ FULL = "every particle"
 def refined_inputs(x: np.ndarray, radius: float, cam, p: DatasetConfig, ss: ScreenSpace, launch: Launcher,
                    margin_radii: float | None) -> tuple[dict, float]:
     """The refiner's ellipsoid channels of one view from every particle's anisotropy (None) or the
-    seen shell's of ``margin_radii``, and the share of particles that got theirs."""
+    seen shell's of ``margin_radii``, and the share of particles that got theirs; the particles'
+    densities come with them (the refined mask's gate)."""
     if margin_radii is None:
         kernels, share = anisotropic_kernels(x, radius, p, launch, launch.device), 1.0
+        density = kernel_densities(x, radius, p, launch, launch.device, kernels)
     else:
-        kernels, seen = seen_kernels(x, radius, p, cam, launch, launch.device, margin_radii * radius)
+        kernels, seen, density = seen_kernels(x, radius, p, cam, launch, launch.device, margin_radii * radius,
+                                              densities=True)
         share = len(seen) / len(x)
-    ch = screen_space_inputs(x, radius, cam, p, ss, filters=None, ellipsoids=kernel_ellipsoids(kernels, p),
-                             aniso_filters=("bilateral",), raw_normals=False)
+    ellipsoids = kernel_ellipsoids(kernels, p, None, density)
+    ch = screen_space_inputs(x, radius, cam, p, ss, filters=None, ellipsoids=ellipsoids, aniso_filters=("bilateral",),
+                             raw_normals=False)
     return ch, share
 
 

@@ -386,6 +386,11 @@ class TrainConfig:
     """Stop after the epoch that passes this much training time, with ``last.pt`` written, so a long
     training runs as resumable chunks (a GPU machine lent for minutes at a time; 0: no limit). The
     stage then reports the epochs done and the next run resumes."""
+    density_feature: bool = False
+    """Give the generator the ellipsoid splat's density feature too (``model.data.density_feature``:
+    the mesh's density at the drawn particles' kernel centres, which tells the spray and sheets the
+    mesh leaves open). Recorded in the checkpoint; ``init_from`` weights without it start with the
+    feature's input weights at zero."""
     input_splat: Literal["sphere", "ellipsoid"] = "ellipsoid"
     """Which splat the generator's input is made of: the particles' anisotropic ellipsoids (the
     dataset's ``aniso_bilateral`` and ``aniso`` channels) or spheres (``bilateral`` and ``Z``).

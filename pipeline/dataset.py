@@ -125,7 +125,7 @@ def build_dataset(folder: Path, scene: SceneConfig, p: DatasetConfig, frames: li
         check()
         with t("anisotropy"):
             kernels = anisotropic_kernels(x, radius, p, local.launch, device)
-            ellipsoids = particle_ellipsoids(x, radius, p, local.launch, device, kernels)
+            ellipsoids = particle_ellipsoids(x, radius, p, local.launch, device, kernels, density=True)
         check()
         mesh = None
         if p.target == "mesh" or p.keep_meshes:

@@ -37,7 +37,7 @@ from pipeline.parallel import Launcher
 from pipeline.screen import ScreenSpace
 from pipeline.screen import kernels as K
 from pipeline.shading import Shader
-from pipeline.surface import anisotropic_kernels, particle_ellipsoids, reconstruct, seen_kernels
+from pipeline.surface import anisotropic_kernels, kernel_densities, particle_ellipsoids, reconstruct, seen_kernels
 from pipeline.timing import Timings
 from pipeline.vectors import as_float32, host, is_tensor, length, xp
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
@@ -140,7 +140,8 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     if window is None:
         return refine_view(refiner, channels, threshold, focal_px, radius, timings, on_device)
     ys, xs = window
-    part = {c: channels[c][ys, xs] for c in (*names.normal, names.raw, names.blurred, names.fluid)}
+    wanted = (*names.normal, names.raw, names.blurred, names.fluid, *([names.density] if refiner.spec.density else []))
+    part = {c: channels[c][ys, xs] for c in wanted}
     n, mask, depth = refine_view(refiner, part, threshold, focal_px, radius, timings, on_device)
     x = xp(n)
     h, w = channels[names.raw].shape
@@ -214,7 +215,8 @@ def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: fl
     with t("prepare"):
         source = channels
         if device_way:  # the filtered depth is on the device already (above)
-            source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in (*names.normal, names.raw)}
+            wanted = (*names.normal, names.raw, *([names.density] if refiner.spec.density else []))
+            source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in wanted}
             source[names.blurred] = blurred
         view = prepare(source, refiner.spec, focal_px, radius, max_pixels=MAX_WORKING_PIXELS,
                        upscale_below_px=UPSCALE_BELOW_PX)
@@ -320,15 +322,27 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
                                                        ss.device)
         return cache["kernels"]
 
-    def camera_ellipsoids(on_device: bool | None = None) -> Ellipsoids:
+    def camera_ellipsoids(on_device: bool | None = None, density: bool = False) -> Ellipsoids:
         """The particles' ellipsoids for this camera: from the frame's kernels when they were made,
-        else from the anisotropy of the particles it sees (``seen_kernels``)."""
-        if "kernels" not in cache and cache.get("seen_kernels", (None,))[0] is not camera:
-            with t("anisotropy"):
-                cache["seen_kernels"] = (camera, *seen_kernels(np.asarray(positions, np.float32), radius, filters,
-                                                               camera, launch, ss.device))
-        kernels_here = cache["kernels"] if "kernels" in cache else cache["seen_kernels"][1]
-        return particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels_here, on_device)
+        else from the anisotropy of the particles it sees (``seen_kernels``); with ``density`` each
+        one's density at its centre too (the refined mask's gate)."""
+        if "kernels" in cache:
+            kernels_here, dens = cache["kernels"], None
+            if density:
+                if "densities" not in cache:
+                    with t("anisotropy"):
+                        cache["densities"] = kernel_densities(positions, radius, filters, launch, ss.device,
+                                                              kernels_here)
+                dens = cache["densities"]
+        else:
+            seen = cache.get("seen_kernels", (None,))
+            if seen[0] is not camera or (density and seen[3] is None):
+                with t("anisotropy"):
+                    seen = (camera, *seen_kernels(np.asarray(positions, np.float32), radius, filters, camera, launch,
+                                                  ss.device, densities=density))
+                cache["seen_kernels"] = seen
+            kernels_here, dens = seen[1], seen[3] if density else None
+        return particle_ellipsoids(positions, radius, filters, launch, ss.device, kernels_here, on_device, dens)
 
     if method == "metaball":
         if metaball is None:
@@ -351,7 +365,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     if method in ANISO_METHODS or (method == "refined" and refiner.splat == "ellipsoid"):
         # made where the kernels lie (host memory on the CPU) for the splat to read in place: at 1M
         # particles on the CPU the splat takes 160 instead of 225 ms (no host copies transformed, uploaded)
-        ellipsoids = camera_ellipsoids(on_device=True)
+        ellipsoids = camera_ellipsoids(on_device=True, density=method == "refined" and refiner.spec.density)
         aniso_filter = {"aniso": (), "aniso_nrf": ("nrf",), "refined": ("bilateral",)}[method]
         keep = method == "refined" and (refiner.device.type != "cpu" if on_device is None else on_device)
         with t("inputs"):

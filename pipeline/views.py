@@ -38,8 +38,9 @@ def screen_space_inputs(positions: np.ndarray, radius: float, camera: Camera, p:
 
     With ``ellipsoids`` the view is splatted a second time with the particles drawn as those,
     adding ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N.*`` (unfiltered; not without
-    ``raw_normals``) and ``aniso_<f>.Z``, ``aniso_<f>.N.*`` for each of ``aniso_filters``.
-    ``on_device``: torch tensors left on the screen space's device (``ScreenSpace.inputs``)."""
+    ``raw_normals``) and ``aniso_<f>.Z``, ``aniso_<f>.N.*`` for each of ``aniso_filters``, and
+    ``aniso.density`` where the ellipsoids carry their density. ``on_device``: torch tensors left on
+    the screen space's device (``ScreenSpace.inputs``)."""
     out = ss.inputs(positions, radius, camera, p, filters, timings, on_device=on_device) if filters is not None else {}
     if ellipsoids is not None:
         out.update(ss.inputs(positions, radius, camera, p, aniso_filters, timings, ellipsoids, on_device,

@@ -53,7 +53,7 @@ def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", 
         raise FileNotFoundError(f"{pattern}: no EXR file matches the pattern")
     refiner, digest = load_weights(SHIPPED_WEIGHTS if weights == "shipped" else Path(weights), choose_device())
     names = input_channels(refiner.splat)
-    wanted = [*names.normal, names.raw, names.blurred, names.fluid]
+    wanted = [*names.normal, names.raw, names.blurred, names.fluid, *([names.density] if refiner.spec.density else [])]
     start, done = time.perf_counter(), 0
     for path in tqdm(files, desc="refine", unit="frame"):
         target = Path(out) / path.name

@@ -173,7 +173,8 @@ def test_refine_your_own_exrs(tmp_path, ss, launch, capsys):
     for f in (1, 2, 10):  # written out of name order
         cam = Camera(look_at((0.05 * f, 0.1, 0.5), (0, 0, 0)), 40.0, 64, 64)
         ch = screen_space_inputs(ball, r, cam, p, ss, filters=None,
-                                 ellipsoids=particle_ellipsoids(ball, r, p, launch), aniso_filters=("bilateral",))
+                                 ellipsoids=particle_ellipsoids(ball, r, p, launch, density=True),
+                                 aniso_filters=("bilateral",))
         write_exr(tmp_path / f"view_{f}.exr", ch)
     refiner = load_refiner(SHIPPED_WEIGHTS)
     if refiner.spec.features == "radius":  # no camera or radius in these headers: the command asks for them

@@ -261,7 +261,7 @@ def test_refine_on_the_gpu_keeps_its_post_processing_there_and_matches_the_cpu()
     cam = Camera(look_at((0, 0, 0), (0, 0, -1)), 40.0, 160, 160)
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
     ch = screen_space_inputs(x, 0.004, cam, DatasetConfig(), ss, filters=("bilateral",),
-                             ellipsoids=particle_ellipsoids(x, 0.004, DatasetConfig(), launch),
+                             ellipsoids=particle_ellipsoids(x, 0.004, DatasetConfig(), launch, density=True),
                              aniso_filters=("bilateral",))
     ss.close()
     launch.close()

@@ -123,7 +123,8 @@ def _refine_view():
 
         launch, ss = Launcher("cpu"), ScreenSpace("cpu")
         ch.update(screen_space_inputs(x, VIEW_RADIUS, cam, DatasetConfig(), ss, filters=None,
-                                      ellipsoids=particle_ellipsoids(x, VIEW_RADIUS, DatasetConfig(), launch),
+                                      ellipsoids=particle_ellipsoids(x, VIEW_RADIUS, DatasetConfig(), launch,
+                                                                     density=True),
                                       aniso_filters=("bilateral",)))
         launch.close()
         ss.close()
@@ -166,7 +167,8 @@ def test_refine_makes_the_input_on_the_device_as_numpy_does():
     host = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=False)
     dev = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=True)
     names = input_channels(refiner.splat)
-    tensors = {c: torch.from_numpy(ch[c]) for c in (*names.normal, names.raw, names.blurred)}
+    wanted = (*names.normal, names.raw, names.blurred, *([names.density] if refiner.spec.density else []))
+    tensors = {c: torch.from_numpy(ch[c]) for c in wanted}
     a, b = (prepare(c, refiner.spec, cam.focal_px, VIEW_RADIUS) for c in (ch, tensors))
     assert isinstance(b.inputs, torch.Tensor) and b.scale == a.scale != 1.0
     np.testing.assert_array_equal(b.fluid.numpy(), a.fluid)
@@ -247,7 +249,7 @@ def test_refine_on_the_fluids_part_of_a_wide_view_gives_the_whole_views_numbers(
     ch = screen_space_inputs(x, r, cam, DatasetConfig(), ss, filters=("bilateral",))
     if refiner.splat != "sphere":
         ch.update(screen_space_inputs(x, r, cam, DatasetConfig(), ss, filters=None,
-                                      ellipsoids=particle_ellipsoids(x, r, DatasetConfig(), launch),
+                                      ellipsoids=particle_ellipsoids(x, r, DatasetConfig(), launch, density=True),
                                       aniso_filters=("bilateral",)))
     launch.close()
     ss.close()

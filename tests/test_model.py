@@ -230,3 +230,48 @@ def test_init_from_loads_matching_weights_and_names_a_mismatch(tmp_path):
         init_generator(wider, str(path))
     with pytest.raises(TrainingError, match="no checkpoint"):
         init_generator(wider, str(tmp_path / "missing.pt"))
+
+
+def test_weights_without_the_density_feature_start_a_refiner_with_it_unchanged(tmp_path):
+    """``init_from`` weights of six inputs into a generator that also takes the density feature: the
+    feature enters with zero weights, so the generator's output is the source's whatever the
+    density, and the spec counts the seventh channel."""
+    from pipeline.model.train import init_generator
+
+    small = {"gen_base_channels": 8, "gen_res_blocks": 1, "disc_base_channels": 8, "disc_layers": 2}
+    source = Refiner(TrainConfig(**small), "cpu", seed=1)
+    path = tmp_path / "source.pt"
+    torch.save(source.state(3), path)
+    cfg = TrainConfig(**small, density_feature=True)
+    assert InputSpec.of(cfg).channels == 7 and InputSpec.of(TrainConfig(**small)).channels == 6
+    grown = Refiner(cfg, "cpu", seed=2)
+    init_generator(grown, str(path))
+    x = torch.randn(1, 6, 32, 32)
+    source.generator.eval()
+    grown.generator.eval()
+    with torch.no_grad():
+        want = source.generator(x)
+        for density in (torch.zeros(1, 1, 32, 32), torch.rand(1, 1, 32, 32)):
+            torch.testing.assert_close(grown.generator(torch.cat([x, density], 1)), want)
+
+
+def test_the_density_feature_follows_the_view_to_the_working_scale():
+    """``prepare`` with the density feature: its seventh channel is tanh(density / 2) over the
+    fluid and 0 elsewhere, at the view's own scale and after a rescale (a constant density stays
+    that constant on the scaled fluid)."""
+    from pipeline.model.data import DENSITY_SCALE, input_channels
+
+    spec = InputSpec(density=True)
+    names = input_channels(spec.splat)
+    yy, xx = np.mgrid[0:64, 0:64]
+    fluid = np.hypot(yy - 32, xx - 32) < 20
+    depth = np.where(fluid, 2.0, 0.0).astype(np.float32)
+    ch = {names.raw: depth, names.blurred: depth, names.fluid: fluid.astype(np.float32),
+          names.density: np.where(fluid, 3.0, 0.0).astype(np.float32),
+          **{n: np.where(fluid, v, 0.0).astype(np.float32) for n, v in zip(names.normal, (0.0, 0.0, 1.0), strict=True)}}
+    want = np.tanh(DENSITY_SCALE * 3.0)
+    for focal_px in (300.0, 3000.0):  # particles of 1.9 px (upscaled to 3) and of 19 px (shrunk to 3)
+        view = prepare(ch, spec, focal_px, 0.0125)
+        assert view.inputs.shape[0] == 7 and view.scale != 1.0
+        np.testing.assert_allclose(view.inputs[6][view.fluid], want, rtol=1e-5)
+        assert (view.inputs[6][~view.fluid] == 0).all()

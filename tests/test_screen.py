@@ -276,6 +276,31 @@ def test_two_overlapping_ellipsoids_keep_the_nearer_surface_and_its_normal(ss):
     assert out.mask[row, centre] == 1 and abs(out.depth[row, centre] - 0.52) < 0.01
 
 
+def test_the_splat_draws_the_largest_density_along_each_ray(ss):
+    """Ellipsoids carrying their density: each pixel gets the largest of those its ray meets (the
+    disc's 0.5 alone, the needle's 3 where it shows and where it lies behind the disc), 0 where
+    none; without densities ``inputs`` has no such map."""
+    from pipeline.ellipsoids import DENSITY_CHANNEL, Ellipsoids
+
+    cam = _camera(96, 30.0)
+    flat = np.diag([1 / 0.04, 1 / 0.04, 1 / 0.01])
+    tall = np.diag([1 / 0.01, 1 / 0.05, 1 / 0.01])
+    centres = np.array([[0, 0, -0.5], [0, 0, -0.53]], np.float32)
+    shapes = np.stack([flat, tall]).astype(np.float32)
+    bounds = np.array([0.04, 0.05], np.float32)
+    p = DatasetConfig()
+    ch = ss.inputs(centres, R, cam, p, filters=(), ellipsoids=Ellipsoids(centres, shapes, bounds,
+                                                                           np.array([0.5, 3.0], np.float32)))
+    density, fluid = ch[DENSITY_CHANNEL], ch["aniso.A"] > 0
+    centre = density.shape[0] // 2
+    assert density[centre, centre] == 3.0, "the needle behind the disc's centre"
+    assert density[centre, centre + int(0.03 / 0.5 * cam.focal_px)] == 0.5, "the disc alone"
+    assert density[centre - int(0.045 / 0.53 * cam.focal_px), centre] == 3.0, "the needle alone"
+    assert (density[~fluid] == 0).all() and (density[fluid] > 0).all()
+    assert DENSITY_CHANNEL not in ss.inputs(centres, R, cam, p, filters=(),
+                                            ellipsoids=Ellipsoids(centres, shapes, bounds))
+
+
 def test_ellipsoids_flatten_a_sheet(ss, launch):
     """Particles of a jittered two-layer sheet: an interior particle's ellipsoid stays a sphere of
     about the particle radius, and drawing ellipsoids instead of spheres makes the unfiltered

@@ -53,7 +53,8 @@ def test_shipped_weights_beat_the_bilateral_input_on_an_unseen_scene():
     ss, launch = ScreenSpace("cpu"), Launcher("cpu")
     cam = camera_for_frame(scene.cameras, "orbit", 20, 50, p.width, p.height)
     ch = screen_space_inputs(x, r, cam, p, ss, filters=("bilateral",),
-                             ellipsoids=particle_ellipsoids(x, r, p, launch), aniso_filters=("bilateral",))
+                             ellipsoids=particle_ellipsoids(x, r, p, launch, density=True),
+                             aniso_filters=("bilateral",))
     ch.update(target_channels(reconstruct(x, r, p, launch), cam, launch))
     ss.close()
     launch.close()

@@ -10,7 +10,15 @@ import pytest
 from pipeline.camera import Camera, look_at
 from pipeline.config import DatasetConfig
 from pipeline.screen import ScreenSpace
-from pipeline.surface import anisotropic_kernels, kernel_ellipsoids, near_front, reconstruct, render_maps, seen_kernels
+from pipeline.surface import (
+    anisotropic_kernels,
+    kernel_densities,
+    kernel_ellipsoids,
+    near_front,
+    reconstruct,
+    render_maps,
+    seen_kernels,
+)
 
 R = 0.01
 
@@ -299,13 +307,45 @@ def test_kernel_sums_reach_every_kernel_that_covers_a_point(launch, spread):
     np.testing.assert_allclose(got, want, atol=2e-4)
 
 
+def test_centre_densities_tell_a_sparse_cloud_from_the_fluid(launch):
+    """``kernel_densities``: the mesh's density at each particle's kernel centre in iso-levels, the
+    brute-force sum over every kernel up to ``DENSITY_CAP``. An interior particle of a lattice block
+    has the rest density (1 over the iso-level 0.5: 2), a lone particle its own kernel's peak
+    (spacing over k_n h, cubed, times the poly6 norm, over the iso-level), and a sparse cloud of
+    about 50 neighbours in the
+    anisotropy's support (its particles' kernels of little mass, which the mesh leaves open) mostly under
+    1."""
+    from pipeline.sph import POLY6_NORM, particle_volume
+    from pipeline.surface import DENSITY_CAP, kernel_densities
+
+    p = DatasetConfig()
+    rng = np.random.default_rng(5)
+    ax = np.arange(12) * 2 * R
+    block = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    cloud = rng.uniform(0.0, 0.4, (800, 3)) + [1.0, 0.0, 0.0]  # a particle per (4.3 r)^3
+    x = np.vstack([block, cloud, [[0.0, 1.0, 0.0]]]).astype(np.float32)
+    kernels = anisotropic_kernels(x, R, p, launch, launch.device)
+    got = kernel_densities(x, R, p, launch, launch.device, kernels)
+    c, g = (k.numpy().astype(np.float64) for k in kernels[:2])
+    amplitude = particle_volume(R) * POLY6_NORM / p.iso_level
+    want = np.minimum(_brute_force_density(c, g, c)[0] * amplitude, DENSITY_CAP)
+    lattice = np.r_[np.arange(len(block)), len(x) - 1]
+    np.testing.assert_allclose(got[lattice], want[lattice], rtol=1e-5)
+    np.testing.assert_allclose(got, want, atol=0.01)  # a cloud particle's far stretched neighbours aside
+    inner = np.argmin(np.linalg.norm(block - block.mean(0), axis=1))
+    np.testing.assert_allclose(got[inner], 1 / p.iso_level, rtol=0.03)
+    np.testing.assert_allclose(got[-1], amplitude / (p.aniso_kn * p.aniso_kernel_radius * R) ** 3, rtol=1e-5)
+    core = np.all(np.abs(cloud - cloud.mean(0)) < 0.1, axis=1)  # away from the cloud's faces
+    assert np.median(got[len(block):-1][core]) < 0.6 and (got[len(block):-1][core] < 1.0).mean() > 0.8
+
+
 def _seen_and_full_splats(x, cam, launch, ss, p):
     """The ellipsoid splats of every particle's anisotropy and of ``seen_kernels``', with the latter's
     kernels and kept indices."""
     full = anisotropic_kernels(x, R, p, launch, launch.device)
-    part, kept = seen_kernels(x, R, p, cam, launch, launch.device)
+    part, kept, density = seen_kernels(x, R, p, cam, launch, launch.device, densities=True)
     ref, got = (ss.splat_ellipsoids(kernel_ellipsoids(k, p), cam) for k in (full, part))
-    return ref, got, full, part, kept
+    return ref, got, full, part, kept, density
 
 
 def test_seen_kernels_splat_the_same_ellipsoids_as_every_particles_anisotropy(launch):
@@ -322,7 +362,7 @@ def test_seen_kernels_splat_the_same_ellipsoids_as_every_particles_anisotropy(la
     ss = ScreenSpace(launch.device)
     for eye in ((1.2, 0.6, 1.0), (0.25, 0.9, 1.6), (1.5, 0.08, 0.25)):  # the last grazes the top
         cam = Camera(look_at(eye, (0.25, 0.14, 0.25)), 40.0, 160, 120)
-        ref, got, full, part, kept = _seen_and_full_splats(box, cam, launch, ss, p)
+        ref, got, full, part, kept, density = _seen_and_full_splats(box, cam, launch, ss, p)
         assert 0.05 < len(kept) / len(box) < 0.8, len(kept) / len(box)
         np.testing.assert_array_equal(ref.depth > 0, got.depth > 0)
         off = np.abs(ref.depth - got.depth) > 1e-6
@@ -336,6 +376,13 @@ def test_seen_kernels_splat_the_same_ellipsoids_as_every_particles_anisotropy(la
         assert np.isin(own, kept).all() and interior.sum() > 0.2 * len(box)
         for a, b in zip(full, part, strict=True):
             np.testing.assert_array_equal(a.numpy()[own], b.numpy()[own])
+        # their densities sum their neighbours' kernels as given: those of every particle's
+        # anisotropy but where a neighbour was left a sphere (off the seen faces: 0.7-1.15x there);
+        # the others lie inside: the rest density
+        every = kernel_densities(box, R, p, launch, launch.device, full)
+        ratio = density[own] / every[own]
+        assert np.median(ratio) == pytest.approx(1.0, abs=2e-3) and 0.6 < ratio.min() and ratio.max() < 1.25
+        assert (density[interior] == 1 / p.iso_level).all()
 
 
 def test_seen_kernels_look_behind_spray_that_shrank(launch, monkeypatch):
@@ -358,11 +405,11 @@ def test_seen_kernels_look_behind_spray_that_shrank(launch, monkeypatch):
         """Shares of pixels whose mask differs and whose depth is off by half a radius or more."""
         return np.mean((ref.depth > 0) != (got.depth > 0)), np.mean(np.abs(ref.depth - got.depth) >= 0.5 * R)
 
-    ref, got, _, _, _ = _seen_and_full_splats(x, cam, launch, ss, p)
+    ref, got, *_ = _seen_and_full_splats(x, cam, launch, ss, p)
     mask_off, depth_off = off(ref, got)
     assert mask_off < 2e-4 and depth_off < 3e-3
     monkeypatch.setattr(surface, "REVEAL_PASSES", 0)
-    ref, alone, _, _, _ = _seen_and_full_splats(x, cam, launch, ss, p)
+    ref, alone, *_ = _seen_and_full_splats(x, cam, launch, ss, p)
     assert off(ref, alone)[1] > 3 * depth_off  # the spheres' surface alone: several times the pixels off
 
 

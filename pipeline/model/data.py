@@ -29,6 +29,7 @@ import torch
 import torch.utils.data
 
 from pipeline.cache import CacheError
+from pipeline.ellipsoids import DENSITY_CHANNEL
 from pipeline.exr import header_focal_px, read_exr, read_exr_header
 from pipeline.model.scale import ScaledView, median_radius_px, projected_radius_px, scale_view
 from pipeline.vectors import as_float32, box_mean, is_tensor, xp
@@ -46,6 +47,7 @@ class InputChannels:
     blurred: str
     fluid: str
     thickness: str
+    density: str = DENSITY_CHANNEL  # the ellipsoid splat's (``density_feature``)
 
 
 def input_channels(splat: Splat = "sphere") -> InputChannels:
@@ -63,12 +65,14 @@ Features = Literal["radius", "frame"]
 class InputSpec:
     """How a refiner's input is made from a view (recorded in its checkpoint's training config):
     ``auxiliary`` depth features, the ``splat`` kind, the depth ``features`` ('radius' or 'frame')
-    and the ``working_radius_px`` the view is scaled to (``pipeline.model.scale``; 0: never)."""
+    and the ``working_radius_px`` the view is scaled to (``pipeline.model.scale``; 0: never), and
+    whether the ``density`` feature of the ellipsoid splat comes last (``density_feature``)."""
 
     auxiliary: bool = True
     splat: Splat = "ellipsoid"
     features: Features = "radius"
     working_radius_px: float = 3.0
+    density: bool = False
 
     @classmethod
     def of(cls, cfg) -> InputSpec:
@@ -78,15 +82,15 @@ class InputSpec:
         get = (lambda k, d: cfg.get(k, d)) if isinstance(cfg, dict) else (lambda k, d: getattr(cfg, k, d))
         features = get("input_features", "frame")
         return cls(bool(get("auxiliary_features", True)), get("input_splat", "sphere"), features,
-                   float(get("working_radius_px", 0.0)) if features == "radius" else 0.0)
+                   float(get("working_radius_px", 0.0)) if features == "radius" else 0.0,
+                   bool(get("density_feature", False)))
 
     @property
     def channels(self) -> int:
         """Generator input channels: the normal (3), with depth features 2 more ('frame') or 3
-        ('radius': bumps, relief, projected radius)."""
-        if not self.auxiliary:
-            return 3
-        return 6 if self.features == "radius" else 5
+        ('radius': bumps, relief, projected radius), and 1 for the density."""
+        depth = 0 if not self.auxiliary else 3 if self.features == "radius" else 2
+        return 3 + depth + int(self.density)
 
 
 BUMP_CLIP_RADII = 3.0
@@ -116,6 +120,20 @@ def depth_features(raw, blurred, fluid, focal_px: float, radius: float):
     relief = x.tanh((blurred - local) / (RELIEF_SCALE_RADII * radius))
     size_px = 0.5 * x.log2(x.clip(r_px, 1e-3, None))
     return as_float32(x.where(fluid, x.stack([bumps, relief, size_px]), 0.0))
+
+
+DENSITY_SCALE = 0.5
+"""The density feature is tanh(this times the density in iso-levels): 0.46 at the iso-level, 0.76
+at the rest density (2 iso-levels), 0.96 at a flattened surface particle's 4."""
+
+
+def density_feature(density, fluid):
+    """The ellipsoid splat's largest density at a drawn particle's kernel centre (``aniso.density``,
+    in iso-levels), tanh-compressed (1 x H x W, 0 outside the fluid). The mesh leaves a sparse
+    spray cloud or a thin sheet open where their centres' density is low, which the splat's depths
+    cannot tell; this can (docs/evaluation.md)."""
+    x = xp(density)
+    return as_float32(x.where(fluid, x.tanh(DENSITY_SCALE * density), 0.0)[None])
 
 
 def frame_features(raw, blurred, fluid):
@@ -157,11 +175,15 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
     target = as_float32(x.stack([channels[c] for c in TARGET])) if with_target else None
     if spec.features == "radius" and (not focal_px or not radius):
         raise ValueError("scale-free refiner inputs need the focal length in pixels and the particle radius")
+    if spec.density and names.density not in channels:
+        raise ValueError(f"this refiner reads the ellipsoid splat's density ({names.density}): draw the particles "
+                         "with particle_ellipsoids(..., density=True)")
+    extra = density_feature(channels[names.density], raw > 0) if spec.density else None
     if spec.features == "radius":
         view = scale_view(normal, raw, blurred, float(focal_px), float(radius), spec.working_radius_px, target,
-                          max_pixels, upscale_below_px)
+                          max_pixels, upscale_below_px, extra)
     else:
-        view = ScaledView(as_float32(normal), raw, blurred, raw > 0, 0.0, 1.0, target)
+        view = ScaledView(as_float32(normal), raw, blurred, raw > 0, 0.0, 1.0, target, extra)
     if not spec.auxiliary:
         inputs = view.normals
     elif spec.features == "radius":
@@ -169,6 +191,8 @@ def prepare(channels: dict[str, np.ndarray], spec: InputSpec, focal_px: float | 
                                                              float(radius))])
     else:
         inputs = x.concatenate([view.normals, frame_features(view.raw, view.blurred, view.fluid)])
+    if spec.density:
+        inputs = x.concatenate([inputs, view.extra])
     inputs = inputs.to(torch.float32).contiguous() if is_tensor(inputs) else np.ascontiguousarray(inputs, np.float32)
     return Prepared(inputs, view.fluid, view.scale, view.target)
 
@@ -213,7 +237,8 @@ def held_window(frame: Frame, side: int, rng: np.random.Generator) -> Frame:
 def load_frame(path, spec: InputSpec) -> Frame:
     """Read the channels a training example needs from a dataset EXR, at the working scale."""
     names = input_channels(spec.splat)
-    ch = read_exr(path, [*names.normal, names.raw, names.blurred, names.fluid, *TARGET])
+    ch = read_exr(path, [*names.normal, names.raw, names.blurred, names.fluid, *TARGET,
+                         *([names.density] if spec.density else [])])
     focal_px, radius = view_geometry(read_exr_header(path)) if spec.features == "radius" else (None, None)
     if spec.features == "radius" and (focal_px is None or radius is None):
         raise CacheError(f"{path}: no camera or particleRadius in its header (a dataset from before the scale-free "

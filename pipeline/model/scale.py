@@ -139,7 +139,8 @@ class ScaledView:
 
     ``normals`` 3 x h x w (unit, 0 outside the fluid), ``raw`` and ``blurred`` depths (0 outside),
     ``fluid`` mask, ``focal_px`` of the scaled image, ``scale`` against the full image (1: untouched)
-    and, when the view has one, the ``target`` normals (3 x h x w, 0 where the target is empty)."""
+    and, when the view has one, the ``target`` normals (3 x h x w, 0 where the target is empty) and
+    ``extra`` maps (k x h x w, 0 outside the fluid)."""
 
     normals: np.ndarray  # (or torch tensors, all of them)
     raw: np.ndarray
@@ -148,24 +149,27 @@ class ScaledView:
     focal_px: float
     scale: float
     target: np.ndarray | None = None
+    extra: np.ndarray | None = None
 
 
 def scale_view(normals, raw, blurred, focal_px: float, radius: float, working_radius_px: float,
-               target=None, max_pixels: int = 0, upscale_below_px: float = math.inf) -> ScaledView:
+               target=None, max_pixels: int = 0, upscale_below_px: float = math.inf, extra=None) -> ScaledView:
     """A view (normals 3 x H x W, raw and filtered depth H x W, 0 = empty) at the working scale
     (upscaled within ``max_pixels`` and below ``upscale_below_px``: ``working_scale``), with the
-    target normals (3 x H x W, zero vector = empty) averaged alike."""
+    target normals (3 x H x W, zero vector = empty) averaged alike, and ``extra`` maps (k x H x W)
+    as the depths."""
     fluid = raw > 0
     scale = working_scale(raw, focal_px, radius, working_radius_px, max_pixels, upscale_below_px)
     if scale == 1.0:
         return ScaledView(as_float32(normals), as_float32(raw), as_float32(blurred), fluid, focal_px, 1.0,
-                          None if target is None else as_float32(target))
+                          None if target is None else as_float32(target), None if extra is None else as_float32(extra))
     h, w = raw.shape
     size = scaled_size(h, w, scale)
     if scale > 1.0:
-        return _upscale_view(normals, raw, blurred, fluid, focal_px, size, target)
+        return _upscale_view(normals, raw, blurred, fluid, focal_px, size, target, extra)
     x = xp(raw)
-    stacked, coverage = area_average(x.concatenate([normals, raw[None], blurred[None]]), fluid, size)
+    maps = [normals, raw[None], blurred[None]] + ([] if extra is None else [extra])
+    stacked, coverage = area_average(x.concatenate(maps), fluid, size)
     small = coverage >= 0.5
     out_target = None
     if target is not None:
@@ -174,7 +178,7 @@ def scale_view(normals, raw, blurred, focal_px: float, radius: float, working_ra
         out_target = unit(t_small, t_cov >= 0.5)
     depths = as_float32(x.where(small, stacked[3:], 0.0))
     return ScaledView(unit(stacked[:3], small), depths[0], depths[1], small, focal_px * size[1] / w,
-                      size[1] / w, out_target)
+                      size[1] / w, out_target, None if extra is None else depths[2:])
 
 
 def resize_map(values: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tensor:
@@ -189,22 +193,26 @@ def _resize(values, size: tuple[int, int], mode: str):
     return _like(resize_map(_tensor(values), size, mode), values)
 
 
-def _upscale_view(normals, raw, blurred, fluid, focal_px: float, size: tuple[int, int], target) -> ScaledView:
-    """A view of small particles interpolated up to ``size``: normals and depths bilinearly over the
-    fluid (weighted by it, so empty pixels do not pull depths to 0), the mask by nearest neighbour."""
+def _upscale_view(normals, raw, blurred, fluid, focal_px: float, size: tuple[int, int], target,
+                  extra=None) -> ScaledView:
+    """A view of small particles interpolated up to ``size``: normals, depths and ``extra`` maps
+    bilinearly over the fluid (weighted by it, so empty pixels do not pull depths to 0), the mask by
+    nearest neighbour."""
     x = xp(raw)
     m = as_float32(fluid)
     big = _resize(m[None], size, "nearest")[0] > 0.5
-    st = _resize(x.concatenate([normals * m, raw[None] * m, blurred[None] * m, m[None]]), size, "bilinear")
+    maps = [normals * m, raw[None] * m, blurred[None] * m, m[None]] + ([] if extra is None else [extra * m])
+    st = _resize(x.concatenate(maps), size, "bilinear")
     weight = x.clip(st[5], 1e-6, None)
     depths = as_float32(x.where(big, st[3:5] / weight, 0.0))
+    more = None if extra is None else as_float32(x.where(big, st[6:] / weight, 0.0))
     out_target = None
     if target is not None:
         t_fluid = as_float32(x.abs(target).sum(0) > 0)
         t_big = _resize(t_fluid[None], size, "nearest")[0] > 0.5
         out_target = unit(_resize(target, size, "bilinear"), t_big)
     return ScaledView(unit(st[:3] / weight, big), depths[0], depths[1], big, focal_px * size[1] / raw.shape[1],
-                      size[1] / raw.shape[1], out_target)
+                      size[1] / raw.shape[1], out_target, more)
 
 
 def resize_normals(normals: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -153,10 +153,17 @@ def init_generator(refiner: Refiner, source: str) -> None:
         raise TrainingError(f"train.init_from: cannot read {path} ({exc})") from None
     want = dict(refiner.generator.args)
     got = {"residual": False, "out_channels": 3, **state.get("generator_args", {})}
+    weights = state["generator"]
+    if InputSpec.of(refiner.cfg).density and got["in_channels"] == want["in_channels"] - 1:
+        # weights without the density feature: it enters with zero weights, so training starts from
+        # their output and learns what the feature adds
+        got["in_channels"] += 1
+        stem = weights["stem.0.weight"]
+        weights = {**weights, "stem.0.weight": torch.cat([stem, stem.new_zeros(stem.shape[0], 1, *stem.shape[2:])], 1)}
     if got != want:
         raise TrainingError(f"train.init_from: {path} holds a generator {got}, but this config builds {want}; "
-                            "set the train.gen_* keys, input_features and residual to match it")
-    refiner.generator.load_state_dict(state["generator"])
+                            "set the train.gen_* keys, input_features, density_feature and residual to match it")
+    refiner.generator.load_state_dict(weights)
 
 
 def _crop_source(cfg: TrainConfig, seed: int, paths: list[Path], steps: int, world: distributed.World,

@@ -16,7 +16,7 @@ import warp as wp
 from pipeline.camera import Camera
 from pipeline.config import DatasetConfig
 from pipeline.device import download, on_torch_stream, torch_waits_for_warp, wait_for_downloads, warp_waits_for_torch
-from pipeline.ellipsoids import Ellipsoids
+from pipeline.ellipsoids import DENSITY_CHANNEL, Ellipsoids
 from pipeline.parallel import Launcher
 from pipeline.screen import filters as F
 from pipeline.screen import kernels as K
@@ -166,11 +166,17 @@ class ScreenSpace:
 
     def _splat_ellipsoids(self, ellipsoids: Ellipsoids, camera: Camera,
                           with_normals: bool = False) -> tuple[wp.array, ...]:
+        """Depth, mask, thickness, normals (zero without ``with_normals``) and, where the ellipsoids
+        carry their density, its largest value along each ray (0 where none; else None)."""
         w, h = camera.width, camera.height
         depth, mask, thickness = self._splat_buffers(w * h)
         normals = self._buffer("splat_normals", w * h, wp.vec3)
         normals.zero_()
         n = len(ellipsoids.centres)
+        density = None
+        if ellipsoids.density is not None:
+            density = self._buffer("splat_density", w * h)
+            density.zero_()
         if n:
             rot = wp.mat33d(*np.asarray(camera.view[:3, :3], np.float64).ravel())
             centres = self._view_points(ellipsoids.centres, camera)
@@ -183,12 +189,19 @@ class ScreenSpace:
             shapes = self._buffer("view_shapes", n, wp.mat33)
             self.launch(K.view_shapes, n, [world_shapes, rot, shapes])
             args = [centres, shapes, bounds, camera.focal_px, w, h]
+            if density is None:
+                drawn = [0, *[self._buffer("no_density", 1)] * 2]
+            else:
+                given = ellipsoids.density
+                if not isinstance(given, wp.array):
+                    given = wp.array(np.asarray(given, np.float32), dtype=float, device=self.device)
+                drawn = [1, given, density]
             bands = row_bands(self.launch, h)
             for normals_pass in (0, 1) if with_normals else (0,):
-                self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals]
-                                                          for r0, r1 in bands])
+                self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals,
+                                                           *drawn] for r0, r1 in bands])
         self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
-        return depth, mask, thickness, normals
+        return depth, mask, thickness, normals, density
 
     def _gaussian(self, depth: wp.array, w: int, h: int, sigma_px: float) -> wp.array:
         a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
@@ -263,7 +276,8 @@ class ScreenSpace:
         With ``ellipsoids`` the particles are drawn as those instead of spheres and every name
         takes an ``aniso`` prefix: ``aniso.Z``, ``aniso.A``, ``aniso.thickness``, ``aniso.N`` (the
         normals of the unfiltered ellipsoid depth, left out without ``raw_normals``: only the
-        ``aniso`` method shows them), ``aniso_<f>.Z`` and ``aniso_<f>.N``.
+        ``aniso`` method shows them), ``aniso_<f>.Z`` and ``aniso_<f>.N``, and where the ellipsoids
+        carry their density ``aniso.density``, its largest value along each pixel's ray.
         ``on_device``: torch tensors on the device instead of host arrays (nothing comes to the
         host; on a GPU, for the refiner and the shader there)."""
         t = timings or Timings()
@@ -275,12 +289,15 @@ class ScreenSpace:
             return self._take(a, shape, on_device, wait=False)
 
         with t("splat"):
+            density = None
             if aniso:
-                depth, mask, thickness, _ = self._splat_ellipsoids(ellipsoids, camera)
+                depth, mask, thickness, _, density = self._splat_ellipsoids(ellipsoids, camera)
             else:
                 depth, mask, thickness = self._splat(positions_world, radius, camera)
             out = {f"{raw}Z": take(depth, shape, on_device), f"{raw}A": take(mask, shape, on_device),
                    f"{raw}thickness": take(thickness, shape, on_device)}
+            if density is not None:
+                out[DENSITY_CHANNEL] = take(density, shape, on_device)
         if aniso and raw_normals:
             with t("normals"):
                 out["aniso.N"] = take(self._normals(depth, camera), (*shape, 3), on_device)
@@ -350,7 +367,7 @@ class ScreenSpace:
         """Nearest ellipsoid-surface depth, mask, summed chord thickness and (with ``normals``, a
         second pass) the analytic view-space normal of the nearest ellipsoid per pixel."""
         shape = (camera.height, camera.width)
-        depth, mask, thickness, n = self._splat_ellipsoids(ellipsoids, camera, with_normals=normals)
+        depth, mask, thickness, n, _ = self._splat_ellipsoids(ellipsoids, camera, with_normals=normals)
         return SplatResult(*(self._download(a, shape) for a in (depth, mask, thickness)),
                            normals=self._download(n, (*shape, 3)) if normals else None)
 

@@ -174,14 +174,18 @@ def splat_ellipsoids(
     depth: wp.array(dtype=float),
     thickness: wp.array(dtype=float),
     normals: wp.array(dtype=wp.vec3),
+    with_density: int,
+    density: wp.array(dtype=float),
+    density_out: wp.array(dtype=float),
 ):
     """Exact ray-ellipsoid splat into the rows [row0, row1). Ellipsoid i is |shapes[i] (x - c_i)| <= 1
     in view space; ``bounds`` are the radii of their bounding spheres, which give each one's pixel
     box (cost: the pixels covered).
 
-    First pass (``normals_pass`` 0): nearest front-surface depth and summed chord length. Second
-    pass (1): the analytic view-space normal M^2 (x - c) of the ellipsoid that won each pixel's
-    depth test (the one whose entry depth equals the splatted depth: the same arithmetic)."""
+    First pass (``normals_pass`` 0): nearest front-surface depth and summed chord length, and
+    ``with_density`` the largest ``density`` of the ellipsoids a pixel's ray meets. Second pass (1):
+    the analytic view-space normal M^2 (x - c) of the ellipsoid that won each pixel's depth test
+    (the one whose entry depth equals the splatted depth: the same arithmetic)."""
     i = wp.tid() + offset
     c = centers_view[i]
     box = splat_bounds(c, bounds[i], focal, width, height, row0, row1)
@@ -195,6 +199,8 @@ def splat_ellipsoids(
                 if normals_pass == 0:
                     wp.atomic_min(depth, idx, hit[0])
                     wp.atomic_add(thickness, idx, 2.0 * hit[1] * wp.length(ray))
+                    if with_density != 0:
+                        wp.atomic_max(density_out, idx, density[i])
                 elif hit[0] == depth[idx]:
                     normals[idx] = wp.normalize(m * (m * (ray * hit[0] - c)))
 

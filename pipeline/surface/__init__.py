@@ -128,6 +128,15 @@ class KernelLookup:
                 self.g, self.extents]
 
 
+DENSITY_REACH = 1.25
+"""``KernelMaker.densities`` sums the kernels of the particles within this many kernel radii h (an
+interior kernel's extent) of a particle: all that reach an interior or surface particle's centre
+(tested), some of a spray cloud's stretched ones (both the dataset and the render sum the same)."""
+DENSITY_CAP = 3.0
+"""``KernelMaker.densities`` stops at this many iso-levels (the feature's tanh(1.5) = 0.91): a dense
+particle's sum ends early, which halves its cost."""
+
+
 def _empty() -> SurfaceMesh:
     return SurfaceMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.float32))
 
@@ -150,6 +159,8 @@ class KernelMaker:
         a.ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(spacing(radius), support)
         a.kn, a.n_eps = p.aniso_kn, p.aniso_neps
         self.args = [self.grid.id, self.x, a]
+        self.amplitude = particle_volume(radius) * POLY6_NORM / p.iso_level
+        self.rest = 1.0 / p.iso_level
         self._order: np.ndarray | None = None
 
     def all(self) -> tuple[wp.array, wp.array, wp.array]:
@@ -169,17 +180,35 @@ class KernelMaker:
         self.launch(K.interior_kernels, n, [self.x, float(self.h), *kernels])
         return kernels
 
+    def _in_grid_order(self, picked: np.ndarray) -> wp.array:
+        """The indices of the ``picked`` particles in the grid's cell order, as the full launch runs
+        them: each thread's neighbours stay in cache."""
+        if self._order is None:
+            order = wp.empty(self.n, dtype=int, device=self.device)
+            self.launch(K.grid_order, self.n, [self.grid.id, order])
+            self._order = order.numpy()
+        return wp.array(self._order[picked[self._order]], dtype=int, device=self.device)
+
     def some(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray) -> tuple[wp.array, ...]:
         """The anisotropy of the ``picked`` particles (a bool a particle) into ``kernels``, in place."""
         if picked.any():
-            if self._order is None:
-                # in the grid's cell order, as the full launch runs: each thread's neighbours stay in cache
-                order = wp.empty(self.n, dtype=int, device=self.device)
-                self.launch(K.grid_order, self.n, [self.grid.id, order])
-                self._order = order.numpy()
-            which = wp.array(self._order[picked[self._order]], dtype=int, device=self.device)
+            which = self._in_grid_order(picked)
             self.launch(K.compute_anisotropy_of, len(which), [which, *self.args, *kernels])
         return kernels
+
+    def densities(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray | None = None) -> np.ndarray:
+        """The mesh's density at each ``picked`` particle's kernel centre (every particle's by
+        default), in iso-levels: below 1 the particle's centre lies outside the mesh, as a spray
+        particle or one of a sheet the mesh opens does (``kernel_densities``). The others, deep
+        inside the fluid, get the rest density (1 over the iso-level)."""
+        picked = np.ones(self.n, bool) if picked is None else picked
+        out = wp.full(self.n, float(self.rest), dtype=float, device=self.device)
+        if picked.any():
+            which = self._in_grid_order(picked)
+            centres, g, _ = kernels
+            self.launch(K.centre_density, len(which), [which, self.grid.id, self.x, float(DENSITY_REACH * self.h),
+                                                       centres, g, float(self.amplitude), float(DENSITY_CAP), out])
+        return out.numpy()
 
 
 def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
@@ -200,6 +229,15 @@ def anisotropic_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, 
     return maker.some(maker.interior(), picked)
 
 
+def kernel_densities(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher, device: str,
+                     kernels: tuple[wp.array, wp.array, wp.array]) -> np.ndarray:
+    """Every particle's density at its own kernel centre in iso-levels (``KernelMaker.densities``)
+    for ``anisotropic_kernels``' output."""
+    if len(positions) == 0:
+        return np.zeros(0, np.float32)
+    return KernelMaker(np.asarray(positions, np.float32), radius, p, launch, device).densities(kernels)
+
+
 REVEAL_PASSES = 2
 """Most passes of ``seen_kernels`` that look behind the seen particles' own ellipsoids (the 1M
 frame of bench_scale: 118k particles in the first pass, 16k and 167 in the two reveal passes)."""
@@ -217,8 +255,8 @@ radii of the filtered depth, which lies deeper): its pass is then every particle
 
 
 def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera: Camera, launch: Launcher,
-                 device: str, depth_margin: float | None = None) -> tuple[tuple[wp.array, wp.array, wp.array],
-                                                                      np.ndarray]:
+                 device: str, depth_margin: float | None = None, densities: bool = False
+                 ) -> tuple[tuple[wp.array, wp.array, wp.array], np.ndarray, np.ndarray | None]:
     """``anisotropic_kernels`` for what ``camera`` sees, the interior kernel (its own place, a
     sphere of radius r) for every other particle: the ellipsoid splat of every particle's anisotropy
     but for a few pixels (tested), at a fraction of its cost for a million particles.
@@ -231,9 +269,11 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     surface get their anisotropy too, until a pass finds none (``REVEAL_PASSES`` at most). The
     spheres' surface alone (one support and a radius deep, as before) left the refined normals of
     the validation scene 0.12 degree worse than every particle's anisotropy; with these passes they
-    are the same (``benchmarks/bench_seen.py``). Returns the kernels and the indices of the
-    particles the camera may see: those that got their anisotropy and those within
-    ``MOTION_BAND_RADII`` under the ellipsoids' surface."""
+    are the same (``benchmarks/bench_seen.py``). Returns the kernels, the indices of the
+    particles the camera may see (those that got their anisotropy and those within
+    ``MOTION_BAND_RADII`` under the ellipsoids' surface) and, with ``densities``, each particle's
+    density at its kernel centre (``KernelMaker.densities``; the rest density for those left as
+    spheres, which lie inside), else None."""
     support = anisotropy_support(radius, p.aniso_kernel_radius)
     # a surface particle moves inwards by at most the smoothing times its one-sided neighbourhood's
     # mean offset (3/8 of the support for a half ball): a hidden one left a sphere in its place
@@ -243,7 +283,8 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     tiles = FrontTiles.of(positions, radius, camera, launch, device, edge_reach)
     if tiles is None:
         seen = np.zeros(0, np.int64)
-        return anisotropic_kernels(positions, radius, p, launch, device, only=seen), seen
+        return (anisotropic_kernels(positions, radius, p, launch, device, only=seen), seen,
+                np.full(len(positions), 1.0 / p.iso_level, np.float32) if densities else None)
     # which particles have their anisotropy, a bool each (sets of a million indices took 50 ms a frame)
     seen = tiles.behind(tiles.sphere_front(launch), launch) <= margin
     maker = KernelMaker(positions, radius, p, launch, device, tiles.x)
@@ -265,7 +306,8 @@ def seen_kernels(positions: np.ndarray, radius: float, p: DatasetConfig, camera:
     if behind is None:
         behind = under_ellipsoids()
     # the last pass's surface (a few hundred particles' kernels newer at most): the motion's band
-    return kernels, np.flatnonzero(seen | (behind <= MOTION_BAND_RADII * radius))
+    visible = np.flatnonzero(seen | (behind <= MOTION_BAND_RADII * radius))
+    return kernels, visible, maker.densities(kernels, seen) if densities else None
 
 
 NEAR_FRONT_TILE_RADII = 1.0
@@ -377,25 +419,29 @@ def near_front(positions: np.ndarray, radius: float, camera: Camera, depth_margi
 
 def particle_ellipsoids(positions: np.ndarray, radius: float, p: DatasetConfig, launch: Launcher,
                         device: str | None = None, kernels: tuple[wp.array, wp.array, wp.array] | None = None,
-                        on_device: bool | None = None) -> Ellipsoids:
+                        on_device: bool | None = None, density: np.ndarray | bool | None = None) -> Ellipsoids:
     """Each particle's ellipsoid from the same anisotropy as the mesh target (Yu & Turk): the
     smoothed centre, and semi-axes of r times the kernel's principal scales (a full neighbourhood
     gives scale 1, so an interior particle stays a sphere of radius r, a surface one flattens).
 
     ``kernels`` are ``anisotropic_kernels``' outputs when they were already computed. ``on_device``
     keeps the ellipsoids on the Warp device as arrays (default: on a GPU, where bringing 52 bytes a
-    particle to the host and back to splat each view cost a round trip and a wait)."""
+    particle to the host and back to splat each view cost a round trip and a wait). ``density``: each
+    particle's density at its kernel centre (``kernel_densities``; True: computed here), which the
+    splat then draws too (a refiner with ``density_feature`` needs it)."""
     device = device or launch.device
     positions = np.asarray(positions, np.float32)
     if len(positions) == 0:
         return Ellipsoids(np.zeros((0, 3), np.float32), np.zeros((0, 3, 3), np.float32), np.zeros(0, np.float32))
     on_device = str(device).startswith("cuda") if on_device is None else on_device
-    return kernel_ellipsoids(kernels or anisotropic_kernels(positions, radius, p, launch, device), p,
-                             launch if on_device else None)
+    kernels = kernels or anisotropic_kernels(positions, radius, p, launch, device)
+    if density is True:
+        density = kernel_densities(positions, radius, p, launch, device, kernels)
+    return kernel_ellipsoids(kernels, p, launch if on_device else None, None if density is False else density)
 
 
 def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetConfig,
-                      launch: Launcher | None = None) -> Ellipsoids:
+                      launch: Launcher | None = None, density: np.ndarray | None = None) -> Ellipsoids:
     """The particle ellipsoids of ``anisotropic_kernels``' output: G = Q diag(1 / s) Q^T / h and
     extent = h max(s), so with h = scale r the ellipsoid of semi-axes r s is |(scale G)(x - c)| = 1.
     With a ``launch`` they are made where the kernels lie (the same float32 numbers, tested) and
@@ -407,9 +453,11 @@ def kernel_ellipsoids(kernels: tuple[wp.array, wp.array, wp.array], p: DatasetCo
         shapes = wp.empty(n, dtype=wp.mat33, device=centres.device)
         bounds = wp.empty(n, dtype=float, device=centres.device)
         launch(K.scale_ellipsoids, n, [g, extents, float(scale), shapes, bounds])
-        return Ellipsoids(centres, shapes, bounds)
+        if density is not None:
+            density = wp.array(np.asarray(density, np.float32), dtype=float, device=centres.device)
+        return Ellipsoids(centres, shapes, bounds, density)
     return Ellipsoids(centres.numpy(), (g.numpy() * scale).astype(np.float32),
-                      (extents.numpy() / scale).astype(np.float32))
+                      (extents.numpy() / scale).astype(np.float32), density)
 
 
 def marching_cubes(grid: np.ndarray | wp.array, level: float, cell: float, origin: np.ndarray, device: str,

@@ -289,6 +289,30 @@ def interior_kernels(offset: int, particle_x: wp.array(dtype=wp.vec3), kernel_ra
 
 
 @wp.kernel
+def centre_density(offset: int, which: wp.array(dtype=int), grid: wp.uint64, particle_x: wp.array(dtype=wp.vec3),
+                   reach: float, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+                   amplitude: float, cap: float, density_out: wp.array(dtype=float)):
+    """The anisotropic density sum_j A det(G_j) P(|G_j (c_i - c_j)|) at the kernel centre of each
+    particle listed in ``which``, over the kernels of the particles the grid finds within ``reach``
+    of its position (``KernelMaker.densities``: every kernel that reaches the centre)."""
+    i = which[wp.tid() + offset]
+    x = centres[i]
+    q = wp.hash_grid_query(grid, particle_x[i], reach)
+    phi = float(0.0)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        G = kernel_g[j]
+        u = G * (x - centres[j])
+        q2 = wp.dot(u, u)
+        if q2 < 1.0:
+            t = 1.0 - q2
+            phi += wp.determinant(G) * t * t * t
+            if phi * amplitude >= cap:
+                break
+    density_out[i] = wp.min(phi * amplitude, cap)
+
+
+@wp.kernel
 def scale_ellipsoids(offset: int, kernel_g: wp.array(dtype=wp.mat33), extents: wp.array(dtype=float), scale: float,
                      shapes: wp.array(dtype=wp.mat33), bounds: wp.array(dtype=float)):
     """The ellipsoids of the kernels (``surface.kernel_ellipsoids``) where the kernels lie: shape
