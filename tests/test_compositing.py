@@ -453,9 +453,11 @@ def test_the_render_loop_kept_on_the_device_writes_the_host_loops_frames(tmp_pat
         assert host[f"{L}Mask.X"].sum() > 300 and np.abs(stack(host, f"{L}Vector.", "XYZW")).max() > 0.1
         for name in (f"{L}Mask.X", f"{L}Depth.Z", f"{L}Thickness.X", *(f"{L}Vector.{c}" for c in "XYZW")):
             np.testing.assert_array_equal(dev[name], host[name], err_msg=name)
-        for prefix, tol in (("ViewNormal.", 1e-4), ("Combined.", 2e-3)):
+        # colour to 2e-3, relative where a specular highlight (HDR, up to about 9) magnifies the
+        # normals' rounding
+        for prefix, tol, rel in (("ViewNormal.", 1e-4, 0.0), ("Combined.", 2e-3, 2e-3)):
             for name in [n for n in host if n.startswith(L + prefix)]:
-                np.testing.assert_allclose(dev[name], host[name], atol=tol, err_msg=name)
+                np.testing.assert_allclose(dev[name], host[name], atol=tol, rtol=rel, err_msg=name)
 
 
 def test_the_motion_pass_of_the_seen_particles_is_every_particles(tmp_path):

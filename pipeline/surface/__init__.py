@@ -205,9 +205,8 @@ class KernelMaker:
         out = wp.full(self.n, float(self.rest), dtype=float, device=self.device)
         if picked.any():
             which = self._in_grid_order(picked)
-            centres, g, _ = kernels
             self.launch(K.centre_density, len(which), [which, self.grid.id, self.x, float(DENSITY_REACH * self.h),
-                                                       centres, g, float(self.amplitude), float(DENSITY_CAP), out])
+                                                       *kernels, float(self.amplitude), float(DENSITY_CAP), out])
         return out.numpy()
 
 

@@ -291,18 +291,23 @@ def interior_kernels(offset: int, particle_x: wp.array(dtype=wp.vec3), kernel_ra
 @wp.kernel
 def centre_density(offset: int, which: wp.array(dtype=int), grid: wp.uint64, particle_x: wp.array(dtype=wp.vec3),
                    reach: float, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
-                   amplitude: float, cap: float, density_out: wp.array(dtype=float)):
+                   extents: wp.array(dtype=float), amplitude: float, cap: float, density_out: wp.array(dtype=float)):
     """The anisotropic density sum_j A det(G_j) P(|G_j (c_i - c_j)|) at the kernel centre of each
     particle listed in ``which``, over the kernels of the particles the grid finds within ``reach``
-    of its position (``KernelMaker.densities``: every kernel that reaches the centre)."""
+    of its position (``KernelMaker.densities``), up to ``cap``. A candidate further than its kernel's
+    bounding radius is skipped before the matrix product (it adds nothing: ``grid_kernel_sum``)."""
     i = which[wp.tid() + offset]
     x = centres[i]
     q = wp.hash_grid_query(grid, particle_x[i], reach)
     phi = float(0.0)
     j = int(0)
     while wp.hash_grid_query_next(q, j):
+        r = x - centres[j]
+        e = extents[j]
+        if wp.dot(r, r) >= e * e * 1.001:
+            continue
         G = kernel_g[j]
-        u = G * (x - centres[j])
+        u = G * r
         q2 = wp.dot(u, u)
         if q2 < 1.0:
             t = 1.0 - q2
