@@ -140,8 +140,7 @@ def refine(refiner: Refiner, channels: dict[str, np.ndarray], threshold: float =
     if window is None:
         return refine_view(refiner, channels, threshold, focal_px, radius, timings, on_device)
     ys, xs = window
-    wanted = (*names.normal, names.raw, names.blurred, names.fluid, *([names.density] if refiner.spec.density else []))
-    part = {c: channels[c][ys, xs] for c in wanted}
+    part = {c: channels[c][ys, xs] for c in refiner.spec.view_channels}
     n, mask, depth = refine_view(refiner, part, threshold, focal_px, radius, timings, on_device)
     x = xp(n)
     h, w = channels[names.raw].shape
@@ -215,7 +214,7 @@ def refine_view(refiner: Refiner, channels: dict[str, np.ndarray], threshold: fl
     with t("prepare"):
         source = channels
         if device_way:  # the filtered depth is on the device already (above)
-            wanted = (*names.normal, names.raw, *([names.density] if refiner.spec.density else []))
+            wanted = [c for c in refiner.spec.view_channels if c not in (names.blurred, names.fluid)]
             source = {c: torch.as_tensor(channels[c], device=refiner.device) for c in wanted}
             source[names.blurred] = blurred
         view = prepare(source, refiner.spec, focal_px, radius, max_pixels=MAX_WORKING_PIXELS,
@@ -325,7 +324,7 @@ def normal_source(method: str, positions: np.ndarray, radius: float, camera: Cam
     def camera_ellipsoids(on_device: bool | None = None, density: bool = False) -> Ellipsoids:
         """The particles' ellipsoids for this camera: from the frame's kernels when they were made,
         else from the anisotropy of the particles it sees (``seen_kernels``); with ``density`` each
-        one's density at its centre too (the refined mask's gate)."""
+        one's density at its centre too (the refiner's density feature)."""
         if "kernels" in cache:
             kernels_here, dens = cache["kernels"], None
             if density:

@@ -53,13 +53,12 @@ def main(opts: StageOptions, pattern: str, out: Path, weights: str = "shipped", 
         raise FileNotFoundError(f"{pattern}: no EXR file matches the pattern")
     refiner, digest = load_weights(SHIPPED_WEIGHTS if weights == "shipped" else Path(weights), choose_device())
     names = input_channels(refiner.splat)
-    wanted = [*names.normal, names.raw, names.blurred, names.fluid, *([names.density] if refiner.spec.density else [])]
     start, done = time.perf_counter(), 0
     for path in tqdm(files, desc="refine", unit="frame"):
         target = Path(out) / path.name
         if target.exists() and not opts.force:
             continue
-        channels = read_exr(path, wanted)
+        channels = read_exr(path, list(refiner.spec.view_channels))
         focal_px, r = geometry(path, channels[names.raw].shape[0], radius, fov_deg)
         if refiner.spec.features == "radius" and (focal_px is None or r is None):
             raise ValueError(f"{path}: the header gives no {'particleRadius' if r is None else 'camera'}; pass "

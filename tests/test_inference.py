@@ -167,8 +167,7 @@ def test_refine_makes_the_input_on_the_device_as_numpy_does():
     host = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=False)
     dev = refine(refiner, ch, 0.5, cam.focal_px, VIEW_RADIUS, on_device=True)
     names = input_channels(refiner.splat)
-    wanted = (*names.normal, names.raw, names.blurred, *([names.density] if refiner.spec.density else []))
-    tensors = {c: torch.from_numpy(ch[c]) for c in wanted}
+    tensors = {c: torch.from_numpy(ch[c]) for c in refiner.spec.view_channels if c != names.fluid}
     a, b = (prepare(c, refiner.spec, cam.focal_px, VIEW_RADIUS) for c in (ch, tensors))
     assert isinstance(b.inputs, torch.Tensor) and b.scale == a.scale != 1.0
     np.testing.assert_array_equal(b.fluid.numpy(), a.fluid)

@@ -92,6 +92,13 @@ class InputSpec:
         depth = 0 if not self.auxiliary else 3 if self.features == "radius" else 2
         return 3 + depth + int(self.density)
 
+    @property
+    def view_channels(self) -> tuple[str, ...]:
+        """The channels of a view this refiner reads: the filtered normal, raw and filtered depth,
+        the splat's fluid and, with the density feature, the density map."""
+        names = input_channels(self.splat)
+        return (*names.normal, names.raw, names.blurred, names.fluid, *((names.density,) if self.density else ()))
+
 
 BUMP_CLIP_RADII = 3.0
 """Raw minus filtered depth is clipped to this many particle radii (a step to a layer behind)."""
@@ -236,9 +243,7 @@ def held_window(frame: Frame, side: int, rng: np.random.Generator) -> Frame:
 
 def load_frame(path, spec: InputSpec) -> Frame:
     """Read the channels a training example needs from a dataset EXR, at the working scale."""
-    names = input_channels(spec.splat)
-    ch = read_exr(path, [*names.normal, names.raw, names.blurred, names.fluid, *TARGET,
-                         *([names.density] if spec.density else [])])
+    ch = read_exr(path, [*spec.view_channels, *TARGET])
     focal_px, radius = view_geometry(read_exr_header(path)) if spec.features == "radius" else (None, None)
     if spec.features == "radius" and (focal_px is None or radius is None):
         raise CacheError(f"{path}: no camera or particleRadius in its header (a dataset from before the scale-free "
