@@ -80,18 +80,22 @@ def splat_bounds(c: wp.vec3, bound: float, focal: float, width: int, height: int
     d = -c[2]
     if d <= bound:
         return wp.vec4i(0, -1, 0, -1)
-    u = tangent_span(c[0], d, bound)
-    v = tangent_span(c[1], d, bound)
     # pixel px's ray has slope (px + 0.5 - w / 2) / f across, -(py + 0.5 - h / 2) / f up (pixel_ray);
-    # spans clamped to the image before they become integers (a sphere at the lens spans a lot)
-    hw = float(width) * 0.5
+    # spans clamped to the image before they become integers (a sphere at the lens spans a lot).
+    # Rows first: each band of a splat culls every particle, and most lie off the band.
+    v = tangent_span(c[1], d, bound)
     hh = float(height) * 0.5
-    x0 = wp.clamp(hw + focal * u[0] - 0.5 - SPLAT_BOX_SLACK, -1.0, float(width))
-    x1 = wp.clamp(hw + focal * u[1] - 0.5 + SPLAT_BOX_SLACK, -1.0, float(width))
     y0 = wp.clamp(hh - focal * v[1] - 0.5 - SPLAT_BOX_SLACK, -1.0, float(height))
     y1 = wp.clamp(hh - focal * v[0] - 0.5 + SPLAT_BOX_SLACK, -1.0, float(height))
-    return wp.vec4i(wp.max(int(wp.ceil(x0)), 0), wp.min(int(wp.floor(x1)), width - 1),
-                    wp.max(int(wp.ceil(y0)), row0), wp.min(int(wp.floor(y1)), row1 - 1))
+    top = wp.max(int(wp.ceil(y0)), row0)
+    bottom = wp.min(int(wp.floor(y1)), row1 - 1)
+    if bottom < top:
+        return wp.vec4i(0, -1, 0, -1)
+    u = tangent_span(c[0], d, bound)
+    hw = float(width) * 0.5
+    x0 = wp.clamp(hw + focal * u[0] - 0.5 - SPLAT_BOX_SLACK, -1.0, float(width))
+    x1 = wp.clamp(hw + focal * u[1] - 0.5 + SPLAT_BOX_SLACK, -1.0, float(width))
+    return wp.vec4i(wp.max(int(wp.ceil(x0)), 0), wp.min(int(wp.floor(x1)), width - 1), top, bottom)
 
 
 @wp.kernel
