@@ -9,13 +9,16 @@ break of 49,140 particles (r = 7.4 mm: small on screen), each framed whole by th
     .venv/bin/python benchmarks/bench_render.py [--sizes 256 512 1024 2048] [--plot docs/render_costs.png]
                                                 [--splat sphere|ellipsoid] [--demo] [--exact]
 
-With ``--splat ellipsoid`` the refiner's input is made from the particles' anisotropic ellipsoids
-(the shipped weights since 2026-11-25): the per-frame anisotropy joins the inputs.
+The refiner's input is what the shipped weights read: since 2026-11-25 the particles' anisotropic
+ellipsoids (the per-frame anisotropy of the particles the camera sees joins the inputs), since
+2026-12-07 with their density map, which the sphere splat lacks. ``--splat sphere`` times the sphere
+splat's stages with weights that read no density.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
@@ -141,8 +144,9 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--exact", action="store_true", help="the exact (pre-2026-11) filters instead of the fast")
-    parser.add_argument("--splat", choices=("sphere", "ellipsoid"), default="sphere",
-                        help="what the refiner's input is made of (the network's cost is the same)")
+    parser.add_argument("--splat", choices=("sphere", "ellipsoid"),
+                        help="what the refiner's input is made of (default: what the shipped weights read; the "
+                             "network's cost is the same)")
     parser.add_argument("--plot", type=Path, help="write a log-log plot of the stage costs here")
     parser.add_argument("--json", type=Path, help="write the figures as JSON here")
     parser.add_argument("--demo", action="store_true", help="also time `make demo` in a fresh cache")
@@ -156,8 +160,11 @@ def main() -> None:
     generator, meta = load_generator(SHIPPED_WEIGHTS)
     shipped = InputSpec.of(meta["config"])
     generator = generator.to(device)
-    refiner = Refiner(generator, device=device, spec=InputSpec(shipped.auxiliary, args.splat, shipped.features,
-                                                               shipped.working_radius_px))
+    splat = args.splat or shipped.splat
+    if splat == "sphere" and shipped.density:
+        raise SystemExit("bench_render: the shipped weights read the ellipsoid splat's density map, which the "
+                         "sphere splat has not: use --splat ellipsoid")
+    refiner = Refiner(generator, device=device, spec=dataclasses.replace(shipped, splat=splat))
     ss, launch, shader = ScreenSpace(wdev), Launcher(wdev), Shader(wdev)
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     x_pbf, r_pbf = _pbf_frame(50_000)
@@ -165,7 +172,7 @@ def main() -> None:
               f"PBF dam break, {len(x_pbf):,} particles (small)": (x_pbf, r_pbf)}
     results: dict[str, dict[str, dict[str, float]]] = {}
     where = "CUDA" if device == "cuda" else f"CPU, {torch.get_num_threads()} torch threads"
-    print(f"device: {where}; filters: {p.filter_mode}; refiner input: {args.splat} splat; ms per frame (medians)")
+    print(f"device: {where}; filters: {p.filter_mode}; refiner input: {splat} splat; ms per frame (medians)")
     head = (f"{'size':>5s} {'r_px':>5s} {'aniso':>6s} {'splat':>6s} {'bilat':>6s} {'normal':>6s} {'inputs':>7s} "
             f"{'shade':>6s} {'exr':>6s} {'in+sh+exr':>9s} {'pipelined':>9s} {'refiner':>8s} {'prep':>6s} "
             f"{'net':>6s} {'post':>6s} {'nocrop':>7s} {'plain':>7s} {'speed-up':>8s}")
