@@ -133,6 +133,40 @@ def test_a_hash_grid_table_spans_the_box_within_its_cap_and_its_size_changes_no_
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * np.abs(a).max())
 
 
+def test_the_cpus_vectorised_anisotropy_is_the_hash_grid_loops_to_rounding(launch):
+    """The CPU path (``native.anisotropy_of_table``: rows of the cell table, 16 neighbours a vector)
+    against the hash grid's scalar loop (``kernels.compute_anisotropy``, CUDA's path): the same
+    kernels to float rounding, for every particle and for a subset left in place, on a ball, a sheet
+    and a spray cloud whose rows wrap round the table's edge (the box straddles the origin)."""
+    import warp as wp
+
+    from pipeline.surface import KernelMaker
+    from pipeline.surface import kernels as K
+
+    rng = np.random.default_rng(5)
+    sheet, _, _ = _sheet((0.3, 1.0, 0.2))
+    spray = rng.uniform(-0.3, 0.3, (400, 3)).astype(np.float32)
+    x = np.concatenate([_lattice_ball(0.08) - np.float32([0.13, 0.05, 0.0]), sheet + np.float32([0.2, 0.0, 0.1]),
+                        spray])
+    p = DatasetConfig()
+    maker = KernelMaker(x, R, p, launch, "cpu")
+    assert launch.cpu
+    native = [a.numpy() for a in maker.all()]
+    scalar = [wp.zeros(len(x), dtype=t, device="cpu") for t in (wp.vec3, wp.mat33, float)]
+    launch(K.compute_anisotropy, len(x), [*maker.args, *scalar])
+    scalar = [a.numpy() for a in scalar]
+    for got, want in zip(native, scalar, strict=True):
+        np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-5 * np.abs(want).max())
+    spherical = np.all(np.abs(scalar[1] - scalar[1][:, :1, :1] * np.eye(3)) < 1e-6 * scalar[1].max(), axis=(1, 2))
+    assert 0 < spherical.sum() < len(x) // 2  # some spray is isotropic (too few neighbours), the fluid not
+    picked = rng.random(len(x)) < 0.3
+    some = [a.numpy() for a in maker.some(maker.interior(), picked)]
+    interior = [a.numpy() for a in maker.interior()]
+    for got, every, rest in zip(some, native, interior, strict=True):
+        np.testing.assert_array_equal(got[picked], every[picked])
+        np.testing.assert_array_equal(got[~picked], rest[~picked])
+
+
 def test_anisotropic_surface_is_flatter_than_isotropic(launch):
     """Same jittered sheet, same iso level: Yu & Turk's kernels against plain isotropic kernels
     of radius h without centre smoothing. Mean normal deviation on the top face: the

@@ -22,6 +22,7 @@ from pipeline.ellipsoids import Ellipsoids
 from pipeline.parallel import Launcher
 from pipeline.sph import POLY6_NORM, anisotropy_support, lattice_offsets, particle_volume, spacing
 from pipeline.surface import kernels as K
+from pipeline.surface import native as N
 from pipeline.timing import Timings
 from pipeline.vectors import bounds, length
 
@@ -159,9 +160,13 @@ class KernelMaker:
         a.ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(spacing(radius), support)
         a.kn, a.n_eps = p.aniso_kn, p.aniso_neps
         self.args = [self.grid.id, self.x, a]
+        self.anisotropy = a
+        self.cell = support / ANISOTROPY_CELLS_PER_SUPPORT
         self.amplitude = particle_volume(radius) * POLY6_NORM / p.iso_level
         self.rest = 1.0 / p.iso_level
+        self._grid_ids: wp.array | None = None
         self._order: np.ndarray | None = None
+        self._table: N.CellTable | None = None
 
     def all(self) -> tuple[wp.array, wp.array, wp.array]:
         """Every particle's smoothed centre, kernel matrix and ellipsoid extent."""
@@ -169,7 +174,11 @@ class KernelMaker:
         centres = wp.zeros(n, dtype=wp.vec3, device=device)
         g = wp.zeros(n, dtype=wp.mat33, device=device)
         extents = wp.zeros(n, dtype=float, device=device)
-        self.launch(K.compute_anisotropy, n, [*self.args, centres, g, extents])
+        if self.launch.cpu:  # the vectorised loop over the cell table
+            self.launch(N.anisotropy_of_table, n, [self._grid_order(), self.table(), self.x, self.anisotropy,
+                                                   centres, g, extents])
+        else:
+            self.launch(K.compute_anisotropy, n, [*self.args, centres, g, extents])
         return centres, g, extents
 
     def interior(self) -> tuple[wp.array, wp.array, wp.array]:
@@ -180,20 +189,45 @@ class KernelMaker:
         self.launch(K.interior_kernels, n, [self.x, float(self.h), *kernels])
         return kernels
 
+    def _grid_order(self) -> wp.array:
+        """Every particle's index in the grid's cell order."""
+        if self._grid_ids is None:
+            self._grid_ids = wp.empty(self.n, dtype=int, device=self.device)
+            self.launch(K.grid_order, self.n, [self.grid.id, self._grid_ids])
+        return self._grid_ids
+
     def _in_grid_order(self, picked: np.ndarray) -> wp.array:
         """The indices of the ``picked`` particles in the grid's cell order, as the full launch runs
         them: each thread's neighbours stay in cache."""
         if self._order is None:
-            order = wp.empty(self.n, dtype=int, device=self.device)
-            self.launch(K.grid_order, self.n, [self.grid.id, order])
-            self._order = order.numpy()
+            self._order = self._grid_order().numpy()
         return wp.array(self._order[picked[self._order]], dtype=int, device=self.device)
+
+    def table(self) -> N.CellTable:
+        """The particles sorted by the grid's cells (``native.CellTable``), made once."""
+        if self._table is None:
+            t = N.CellTable()
+            t.ids = self._grid_order()
+            t.x = wp.empty(self.n, dtype=wp.vec3, device=self.device)
+            t.dim_x, t.dim_y, t.dim_z = self.grid._dim_x, self.grid._dim_y, self.grid._dim_z
+            t.cell = float(self.cell)
+            t.inv = float(np.float32(1.0) / np.float32(self.cell))  # the grid's own float32 inverse
+            t.first = wp.empty(t.dim_x * t.dim_y * t.dim_z + 1, dtype=int, device=self.device)
+            slots = wp.empty(self.n, dtype=int, device=self.device)
+            self.launch(N.table_entries, self.n, [t, self.x, slots])
+            self.launch(N.table_first, self.n + 1, [self.n, slots, t.first])
+            self._table = t
+        return self._table
 
     def some(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray) -> tuple[wp.array, ...]:
         """The anisotropy of the ``picked`` particles (a bool a particle) into ``kernels``, in place."""
         if picked.any():
             which = self._in_grid_order(picked)
-            self.launch(K.compute_anisotropy_of, len(which), [which, *self.args, *kernels])
+            if self.launch.cpu:
+                self.launch(N.anisotropy_of_table, len(which), [which, self.table(), self.x, self.anisotropy,
+                                                                *kernels])
+            else:
+                self.launch(K.compute_anisotropy_of, len(which), [which, *self.args, *kernels])
         return kernels
 
     def densities(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray | None = None) -> np.ndarray:

@@ -52,6 +52,47 @@ class TileView:
 
 
 @wp.func
+def anisotropy_from_moments(
+    i: int,
+    xi: wp.vec3,
+    wsum: float,
+    wr: wp.vec3,
+    wrr: wp.mat33,
+    count: int,
+    a: Anisotropy,
+    centre_out: wp.array(dtype=wp.vec3),
+    g_out: wp.array(dtype=wp.mat33),
+    extent_out: wp.array(dtype=float),
+):
+    """Particle i's smoothed centre, kernel matrix G and bounding radius from the weighted moments
+    of its neighbours' offsets r = x_j - x_i: sum w, sum w r, sum w r r^T and the neighbour count.
+
+    ``a.ks_scale`` maps covariance eigenvalues to kernel scales so that a full neighbourhood gives
+    1 (Yu & Turk's k_s = 1400 does this in their units).
+    """
+    kernel_radius = a.kernel_radius
+    mean_r = wr / wsum
+    centre_out[i] = xi + mean_r * a.smoothing
+    if count - 1 < a.n_eps:
+        s = a.kn * kernel_radius
+        g_out[i] = wp.identity(3, dtype=float) * (1.0 / s)
+        extent_out[i] = s
+        return
+    cov = wrr / wsum - wp.outer(mean_r, mean_r)
+    Q = wp.mat33()
+    e = wp.vec3()
+    wp.eig3(cov, Q, e)
+    top = wp.max(e[0], wp.max(e[1], e[2]))
+    floor = top / a.kr
+    s0 = a.ks_scale * wp.max(e[0], floor)
+    s1 = a.ks_scale * wp.max(e[1], floor)
+    s2 = a.ks_scale * wp.max(e[2], floor)
+    inv = wp.mat33(1.0 / s0, 0.0, 0.0, 0.0, 1.0 / s1, 0.0, 0.0, 0.0, 1.0 / s2)
+    g_out[i] = Q * inv * wp.transpose(Q) * (1.0 / kernel_radius)
+    extent_out[i] = kernel_radius * wp.max(s0, wp.max(s1, s2))
+
+
+@wp.func
 def particle_anisotropy(
     i: int,
     grid: wp.uint64,
@@ -61,13 +102,9 @@ def particle_anisotropy(
     g_out: wp.array(dtype=wp.mat33),
     extent_out: wp.array(dtype=float),
 ):
-    """Smoothed centre, kernel matrix G and bounding radius of particle i's ellipsoid.
-
-    ``a.ks_scale`` maps covariance eigenvalues to kernel scales so that a full neighbourhood gives
-    1 (Yu & Turk's k_s = 1400 does this in their units).
-    """
+    """Smoothed centre, kernel matrix G and bounding radius of particle i's ellipsoid, its
+    neighbours found through the hash grid (the CPU's vectorised form: ``pipeline.surface.native``)."""
     support = a.support
-    kernel_radius = a.kernel_radius
     xi = particle_x[i]
     # one pass: weighted first and second moments of the offsets r = x_j - x_i (offsets rather than
     # positions keep the float32 moments far from cancellation), cov = E[r r^T] - E[r] E[r]^T
@@ -101,25 +138,7 @@ def particle_anisotropy(
             wzz += r[2] * r[2] * w
             count += 1
     wrr = wp.mat33(wxx, wxy, wxz, wxy, wyy, wyz, wxz, wyz, wzz)
-    mean_r = wr / wsum
-    centre_out[i] = xi + mean_r * a.smoothing
-    if count - 1 < a.n_eps:
-        s = a.kn * kernel_radius
-        g_out[i] = wp.identity(3, dtype=float) * (1.0 / s)
-        extent_out[i] = s
-        return
-    cov = wrr / wsum - wp.outer(mean_r, mean_r)
-    Q = wp.mat33()
-    e = wp.vec3()
-    wp.eig3(cov, Q, e)
-    top = wp.max(e[0], wp.max(e[1], e[2]))
-    floor = top / a.kr
-    s0 = a.ks_scale * wp.max(e[0], floor)
-    s1 = a.ks_scale * wp.max(e[1], floor)
-    s2 = a.ks_scale * wp.max(e[2], floor)
-    inv = wp.mat33(1.0 / s0, 0.0, 0.0, 0.0, 1.0 / s1, 0.0, 0.0, 0.0, 1.0 / s2)
-    g_out[i] = Q * inv * wp.transpose(Q) * (1.0 / kernel_radius)
-    extent_out[i] = kernel_radius * wp.max(s0, wp.max(s1, s2))
+    anisotropy_from_moments(i, xi, wsum, wr, wrr, count, a, centre_out, g_out, extent_out)
 
 
 @wp.kernel
