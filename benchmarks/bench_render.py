@@ -139,6 +139,19 @@ def plot(results: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def shipped_refiner(device: str, splat: str | None = None) -> tuple[Refiner, torch.nn.Module]:
+    """The shipped weights as the render runs them and as the training-time module, reading
+    ``splat`` (default: the splat they were trained on)."""
+    generator, meta = load_generator(SHIPPED_WEIGHTS)
+    shipped = InputSpec.of(meta["config"])
+    generator = generator.to(device)
+    splat = splat or shipped.splat
+    if splat == "sphere" and shipped.density:
+        raise SystemExit("bench_render: the shipped weights read the ellipsoid splat's density map, which the "
+                         "sphere splat has not: use --splat ellipsoid")
+    return Refiner(generator, device=device, spec=dataclasses.replace(shipped, splat=splat)), generator
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
@@ -157,14 +170,8 @@ def main() -> None:
     wdev = warp_device(device)
     wp.config.quiet = True
     p = DatasetConfig(filter_mode="exact" if args.exact else "fast")
-    generator, meta = load_generator(SHIPPED_WEIGHTS)
-    shipped = InputSpec.of(meta["config"])
-    generator = generator.to(device)
-    splat = args.splat or shipped.splat
-    if splat == "sphere" and shipped.density:
-        raise SystemExit("bench_render: the shipped weights read the ellipsoid splat's density map, which the "
-                         "sphere splat has not: use --splat ellipsoid")
-    refiner = Refiner(generator, device=device, spec=dataclasses.replace(shipped, splat=splat))
+    refiner, generator = shipped_refiner(device, args.splat)
+    splat = refiner.spec.splat
     ss, launch, shader = ScreenSpace(wdev), Launcher(wdev), Shader(wdev)
     bgeo = ROOT / "tests" / "data" / "dam_break_frame_9_6859_particles.bgeo"
     x_pbf, r_pbf = _pbf_frame(50_000)
