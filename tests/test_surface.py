@@ -135,7 +135,7 @@ def test_a_hash_grid_table_spans_the_box_within_its_cap_and_its_size_changes_no_
 
 def test_the_cpus_vectorised_anisotropy_is_the_hash_grid_loops_to_rounding(launch):
     """The CPU path (``native.anisotropy_of_table``: rows of the cell table, 16 neighbours a vector)
-    against the hash grid's scalar loop (``kernels.compute_anisotropy``, CUDA's path): the same
+    against the hash grid's scalar loop (``kernels.compute_anisotropy_of``, CUDA's path): the same
     kernels to float rounding, for every particle and for a subset left in place, on a ball, a sheet
     and a spray cloud whose rows wrap round the table's edge (the box straddles the origin)."""
     import warp as wp
@@ -153,7 +153,7 @@ def test_the_cpus_vectorised_anisotropy_is_the_hash_grid_loops_to_rounding(launc
     assert launch.cpu
     native = [a.numpy() for a in maker.all()]
     scalar = [wp.zeros(len(x), dtype=t, device="cpu") for t in (wp.vec3, wp.mat33, float)]
-    launch(K.compute_anisotropy, len(x), [*maker.args, *scalar])
+    launch(K.compute_anisotropy_of, len(x), [maker._grid_order(), maker.grid.id, maker.x, maker.anisotropy, *scalar])
     scalar = [a.numpy() for a in scalar]
     for got, want in zip(native, scalar, strict=True):
         np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-5 * np.abs(want).max())

@@ -159,7 +159,6 @@ class KernelMaker:
         a.support, a.kernel_radius, a.smoothing, a.kr = support, self.h, p.aniso_smoothing, p.aniso_kr
         a.ks_scale = (p.aniso_ks / 1400.0) / full_neighbourhood_variance(spacing(radius), support)
         a.kn, a.n_eps = p.aniso_kn, p.aniso_neps
-        self.args = [self.grid.id, self.x, a]
         self.anisotropy = a
         self.cell = support / ANISOTROPY_CELLS_PER_SUPPORT
         self.amplitude = particle_volume(radius) * POLY6_NORM / p.iso_level
@@ -174,12 +173,7 @@ class KernelMaker:
         centres = wp.zeros(n, dtype=wp.vec3, device=device)
         g = wp.zeros(n, dtype=wp.mat33, device=device)
         extents = wp.zeros(n, dtype=float, device=device)
-        if self.launch.cpu:  # the vectorised loop over the cell table
-            self.launch(N.anisotropy_of_table, n, [self._grid_order(), self.table(), self.x, self.anisotropy,
-                                                   centres, g, extents])
-        else:
-            self.launch(K.compute_anisotropy, n, [*self.args, centres, g, extents])
-        return centres, g, extents
+        return self._anisotropy(self._grid_order(), (centres, g, extents))
 
     def interior(self) -> tuple[wp.array, wp.array, wp.array]:
         """Every particle with the kernel of a full interior neighbourhood: its own place, a sphere."""
@@ -222,12 +216,16 @@ class KernelMaker:
     def some(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray) -> tuple[wp.array, ...]:
         """The anisotropy of the ``picked`` particles (a bool a particle) into ``kernels``, in place."""
         if picked.any():
-            which = self._in_grid_order(picked)
-            if self.launch.cpu:
-                self.launch(N.anisotropy_of_table, len(which), [which, self.table(), self.x, self.anisotropy,
-                                                                *kernels])
-            else:
-                self.launch(K.compute_anisotropy_of, len(which), [which, *self.args, *kernels])
+            self._anisotropy(self._in_grid_order(picked), kernels)
+        return kernels
+
+    def _anisotropy(self, which: wp.array, kernels: tuple[wp.array, wp.array, wp.array]) -> tuple[wp.array, ...]:
+        """The anisotropy of the particles listed in ``which`` (in the grid's cell order) into
+        ``kernels``: on the CPU the vectorised loop over the cell table, on CUDA the hash grid's."""
+        if self.launch.cpu:
+            self.launch(N.anisotropy_of_table, len(which), [which, self.table(), self.x, self.anisotropy, *kernels])
+        else:
+            self.launch(K.compute_anisotropy_of, len(which), [which, self.grid.id, self.x, self.anisotropy, *kernels])
         return kernels
 
     def densities(self, kernels: tuple[wp.array, wp.array, wp.array], picked: np.ndarray | None = None) -> np.ndarray:

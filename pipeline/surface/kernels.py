@@ -142,21 +142,6 @@ def particle_anisotropy(
 
 
 @wp.kernel
-def compute_anisotropy(
-    offset: int,
-    grid: wp.uint64,
-    particle_x: wp.array(dtype=wp.vec3),
-    a: Anisotropy,
-    centre_out: wp.array(dtype=wp.vec3),
-    g_out: wp.array(dtype=wp.mat33),
-    extent_out: wp.array(dtype=float),
-):
-    """``particle_anisotropy`` of every particle, in the grid's cell order (neighbours in cache)."""
-    i = wp.hash_grid_point_id(grid, wp.tid() + offset)
-    particle_anisotropy(i, grid, particle_x, a, centre_out, g_out, extent_out)
-
-
-@wp.kernel
 def compute_anisotropy_of(
     offset: int,
     which: wp.array(dtype=int),
@@ -167,7 +152,8 @@ def compute_anisotropy_of(
     g_out: wp.array(dtype=wp.mat33),
     extent_out: wp.array(dtype=float),
 ):
-    """``particle_anisotropy`` of the particles listed in ``which`` (the others keep their values)."""
+    """``particle_anisotropy`` of the particles listed in ``which`` (the others keep their values; every
+    particle in the grid's cell order keeps each thread's neighbours in cache)."""
     particle_anisotropy(which[wp.tid() + offset], grid, particle_x, a, centre_out, g_out, extent_out)
 
 

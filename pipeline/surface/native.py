@@ -174,7 +174,7 @@ for (int z = z0; z <= z1; ++z) {{
         }}
     }}
 }}
-Moments out(0.0f);
+wp::vec_t<11, wp::float32> out(0.0f);  // Moments
 int n = 0;
 for (int q = 0; q < {LANES}; ++q) {{
     out.c[0] += aw[q];
@@ -194,7 +194,7 @@ return out;
 """
 
 
-@wp.func_native(_MOMENTS.replace("Moments", "wp::vec_t<11, wp::float32>"))
+@wp.func_native(_MOMENTS)
 def cell_moments(xi: wp.vec3, t: CellTable, support: float) -> Moments:
     """The weighted moments of the offsets to xi of the table's points within ``support``."""
     ...
