@@ -10,7 +10,7 @@ import pytest
 import warp as wp
 
 MODULES = ["pipeline.sim.kernels", "pipeline.sim.native", "pipeline.screen.kernels", "pipeline.screen.filters",
-           "pipeline.surface.kernels", "pipeline.surface.native",
+           "pipeline.screen.native", "pipeline.surface.kernels", "pipeline.surface.native",
            "pipeline.shading.kernels", "pipeline.metaball.kernels"]
 
 

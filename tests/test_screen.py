@@ -173,15 +173,58 @@ def test_bilateral_line_sums_only_where_a_line_has_wide_taps(ss):
     depth[: h // 2, w // 2:] *= 4.0
     p = DatasetConfig(bilateral_max_taps=6)
     fresh = ss.bilateral(depth, cam, R, p)
-    sums = ss._buffer("line_sums", depth.size, wp.vec3d)
+    sums = ss._buffer("line_sums", 3 * depth.size, wp.float64)
     sums.numpy()[:] = np.nan
     again = ss.bilateral(depth, cam, R, p)
     np.testing.assert_array_equal(again, fresh)
     assert np.isfinite(again).all()
-    made = np.isfinite(sums.numpy()).all(axis=1).reshape(depth.shape)
+    made = np.isfinite(sums.numpy().reshape(3, -1)).all(axis=0).reshape(depth.shape)
     assert made[: h // 2].all() and made[:, : w // 2].all() and not made[h // 2:, w // 2:].any()
     full = ss.bilateral(depth, cam, R, DatasetConfig(bilateral_max_taps=0))
     assert np.abs(again - full)[: h // 4, : w // 4].max() > 1e-3 * R  # the near quarter's stretches apply
+
+
+@pytest.mark.parametrize("taps", [0, 4, 16])
+def test_the_cpus_vectorised_bilateral_is_the_warp_pass_to_rounding(ss, taps, monkeypatch):
+    """On the CPU the bilateral's passes run sixteen pixels a vector with an ``exp`` of their own
+    (``pipeline.screen.native``): they must give the depths of the Warp kernel that CUDA runs, to
+    float rounding. A sheet near in one quarter and four times as far elsewhere, 150 px (rows of
+    blocks that end short): kernels of 14 px and of 4, taps every pixel, stretches of 4 pixels (a
+    depth step in a stretch sends it pixel by pixel) or none wider than 16, and the image's edges."""
+    cam, sp = _bumpy_sheet_depth(ss, size=150)
+    h, w = sp.depth.shape
+    depth = sp.depth.copy()
+    depth[h // 2:] *= 4.0
+    depth[: h // 2, w // 2:] *= 4.0
+    p = DatasetConfig(bilateral_max_taps=taps)
+    native = ss.bilateral(depth, cam, R, p)
+    monkeypatch.setattr(ss.launch, "cpu", False)  # the Warp kernel's way, on the same CPU
+    scalar = ss.bilateral(depth, cam, R, p)
+    np.testing.assert_array_equal(native > 0, depth > 0)
+    np.testing.assert_array_equal(scalar > 0, depth > 0)
+    np.testing.assert_allclose(native, scalar, rtol=2e-6)
+    assert np.abs(native - depth).max() > 0.1 * R  # it filtered
+
+
+def test_the_vectorised_exp_is_the_c_librarys_to_two_ulp():
+    """``native``'s own ``exp`` (Cephes' polynomial, which the compiler can vectorise) against
+    float64 over the filters' range of arguments, and its clamp far below it."""
+    import warp as wp
+
+    from pipeline.screen.native import fast_exp
+
+    @wp.kernel
+    def exps(x: wp.array(dtype=float), out: wp.array(dtype=float)):
+        i = wp.tid()
+        out[i] = fast_exp(x[i])
+
+    x = np.concatenate([np.linspace(-87.0, 0.0, 200001), np.linspace(0.0, 10.0, 1001)]).astype(np.float32)
+    out = wp.zeros(len(x), dtype=float)
+    wp.launch(exps, len(x), [wp.array(x), out], device="cpu")
+    want = np.exp(x.astype(np.float64))
+    np.testing.assert_allclose(out.numpy(), want, rtol=2.5e-7)
+    wp.launch(exps, 2, [wp.array(np.array([-200.0, -87.0], np.float32)), out], device="cpu")
+    assert 0.0 < out.numpy()[0] == out.numpy()[1] < 1e-37
 
 
 def test_separable_bilateral_is_the_2d_filter_without_range_weights(ss):

@@ -20,6 +20,7 @@ from pipeline.ellipsoids import DENSITY_CHANNEL, Ellipsoids
 from pipeline.parallel import Launcher
 from pipeline.screen import filters as F
 from pipeline.screen import kernels as K
+from pipeline.screen import native as N
 from pipeline.timing import Timings
 from pipeline.vectors import host, is_tensor
 
@@ -206,7 +207,7 @@ class ScreenSpace:
     def _gaussian(self, depth: wp.array, w: int, h: int, sigma_px: float) -> wp.array:
         a, b = self._buffer("pass", w * h), self._buffer("gaussian", w * h)
         args = [1.0, 0.0, 0.0, 0.0, max(w, h), sigma_px, 0]  # a fixed sigma, no range term, every pixel
-        unused = self._buffer("no_sums", 1, wp.vec3d)
+        unused = self._buffer("no_sums", 1, wp.float64)
         self.launch(F.bilateral_pass, w * h, [depth, w, h, 0, *args, unused, a])
         self.launch(F.bilateral_pass, w * h, [a, w, h, 1, *args, unused, b])
         return b
@@ -219,14 +220,18 @@ class ScreenSpace:
             self.launch(F.bilateral_filter, w * h, [depth, w, h, *args, out])
             return out
         a = self._buffer("pass", w * h)
-        sums = self._buffer("line_sums", w * h, wp.vec3d)
+        sums = self._buffer("line_sums", 3 * w * h, wp.float64)  # line_prefix's planes
         for axis, src, dst in ((0, depth, a), (1, a, out)):
             if p.bilateral_max_taps:
                 self.launch(F.line_prefix, h if axis == 0 else w, [src, w, h, axis, camera.focal_px, r,
                                                                    p.bilateral_sigma_px_scale,
                                                                    p.bilateral_max_radius_px,
                                                                    p.bilateral_max_taps, sums])
-            self.launch(F.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
+            if self.launch.cpu:  # sixteen pixels a vector (pipeline.screen.native)
+                self.launch(N.bilateral_pass_blocks, N.blocks(w, h), [src, w, h, axis, *args, p.bilateral_max_taps,
+                                                                      sums, dst])
+            else:
+                self.launch(F.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
         return out
 
     def _narrow_range(self, depth: wp.array, camera: Camera, r: float, p: DatasetConfig) -> wp.array:

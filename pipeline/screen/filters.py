@@ -113,10 +113,11 @@ def line_prefix(
     sigma_scale: float,
     max_radius: int,
     max_taps: int,
-    sums: wp.array(dtype=wp.vec3d),
+    sums: wp.array(dtype=wp.float64),
 ):
     """Running (count, sum of depths, sum of squared depths) of the fluid pixels along one row
-    (axis 0) or column (axis 1) per thread, for the stretches of ``bilateral_pass``'s wide taps.
+    (axis 0) or column (axis 1) per thread, for the stretches of ``bilateral_pass``'s wide taps:
+    three planes of the image's size in ``sums``, so neighbouring pixels' sums lie side by side.
     float64: a float32 sum over a 4K row loses the millimetres two sums are subtracted for.
     A line whose nearest fluid pixel's kernel needs no stretches (the widest on the line, as the
     kernel narrows with depth) is left as it is: ``bilateral_pass`` reads a line's sums only for
@@ -139,26 +140,32 @@ def line_prefix(
     rad = int(bilateral_radius(nearest, focal, particle_radius, sigma_scale, 0.0, max_radius)[1])
     if tap_stride(rad, max_taps) == 1:
         return
+    plane = width * height
     acc = wp.vec3d(0.0, 0.0, 0.0)
     for i in range(n):
         idx = start + i * step
         d = wp.float64(depth_in[idx])
         if d > wp.float64(0.0):
             acc += wp.vec3d(wp.float64(1.0), d, d * d)
-        sums[idx] = acc
+        sums[idx] = acc[0]
+        sums[plane + idx] = acc[1]
+        sums[2 * plane + idx] = acc[2]
 
 
 @wp.func
-def stretch_tap(depth_in: wp.array(dtype=float), sums: wp.array(dtype=wp.vec3d), first: int, last: int,
+def stretch_tap(depth_in: wp.array(dtype=float), sums: wp.array(dtype=wp.float64), first: int, last: int,
                 step: int, line_start: int, pos: int, d0: float, inv_s: float, inv_r: float,
                 range_sigma: float) -> wp.vec2:
     """(sum of weight x depth, sum of weights) of the fluid pixels from line position ``first`` to
     ``last``: one tap at the stretch's mean depth and centre, weighted by its pixel count, where its
     depths spread less than a quarter of the range sigma; where they spread more (it straddles a
     depth edge, which one mean would blur across) every pixel on its own."""
-    hi = sums[line_start + last * step]
+    plane = depth_in.shape[0]
+    a = line_start + last * step
+    hi = wp.vec3d(sums[a], sums[plane + a], sums[2 * plane + a])
     if first > 0:
-        hi -= sums[line_start + (first - 1) * step]
+        b = line_start + (first - 1) * step
+        hi -= wp.vec3d(sums[b], sums[plane + b], sums[2 * plane + b])
     count = float(hi[0])
     if count == 0.0:
         return wp.vec2(0.0, 0.0)
@@ -195,7 +202,7 @@ def bilateral_pass(
     max_radius: int,
     fixed_sigma: float,
     max_taps: int,
-    sums: wp.array(dtype=wp.vec3d),
+    sums: wp.array(dtype=wp.float64),
     depth_out: wp.array(dtype=float),
 ):
     """One 1D pass of the separable bilateral filter (Pham & van Vliet 2005).
@@ -208,7 +215,8 @@ def bilateral_pass(
     overlapping samples of the sphere bumps (single pixels every k apart made the normals 5x
     rougher).
     With ``fixed_sigma`` > 0 and ``range_sigma`` 0 it is a plain Gaussian pass of that sigma and a
-    radius of 3 sigma over fluid pixels (the naive screen-space blur)."""
+    radius of 3 sigma over fluid pixels (the naive screen-space blur). The CPU runs the bilateral
+    (not the Gaussian) sixteen pixels a vector instead: ``pipeline.screen.native``."""
     idx = wp.tid() + offset
     d0 = fluid_depth(depth_in, depth_out, idx)
     if d0 <= 0.0:

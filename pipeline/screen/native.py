@@ -1,0 +1,326 @@
+"""The CPU's fast path of the separable bilateral filter (``filters.bilateral_pass`` holds the
+method): sixteen neighbouring pixels of a row at a time in C++ (``wp.func_native``).
+
+Warp compiles its kernels to scalar CPU code, one pixel and one tap at a time, each tap with its own
+``exp`` call. Sixteen pixels side by side in a row have their taps side by side in memory in both
+passes (a row pass's tap k of pixel c is pixel c + k, a column pass's the pixel k rows down), and so
+are a wide kernel's stretch sums (``line_prefix``'s planes) where the pixels share a stride: a tap
+is one vector load and one vector of arithmetic, with an ``exp`` the compiler can vectorise
+(``fast_exp``, Cephes' polynomial, within 2.5e-7 of the exact value). Blocks at the image's edges
+or with mixed strides gather their taps instead; a block of sixteen empty pixels costs one test.
+Each pixel's taps are summed in the scalar pass's order (but a stretch that straddles a depth step,
+whose pixels count one by one, after the block's other taps), so the filtered depth equals the
+scalar pass's to float rounding (tested), not bit for bit. A pass over a 1080p frame of 38k
+particles (kernels of 18 px, stretches of 2): 31 -> 8.6 ms; of 1M particles (6 px): 15 -> 3.6 ms.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+LANES = 16
+"""Pixels a vector: AVX-512's 16 floats (an AVX2 CPU runs them as two vectors of 8)."""
+
+_EXP = """
+// Cephes' expf: e^x = 2^n e^r, r = x - n ln 2 in two parts, e^r by a degree-6 polynomial
+const float c = wp::min(wp::max(x, -87.0f), 88.0f);
+const float n = wp::floor(c * 1.44269504088896341f + 0.5f);
+float r = c - n * 0.693359375f;
+r = r - n * -2.12194440e-4f;
+const float p = ((((((1.9875691500e-4f * r + 1.3981999507e-3f) * r + 8.3334519073e-3f) * r + 4.1665795894e-2f) * r
+                  + 1.6666665459e-1f) * r + 5.0000001201e-1f) * r * r + r) + 1.0f;
+return p * __builtin_bit_cast(float, ((int)n + 127) << 23);
+"""
+
+
+_PASS = f"""
+auto fast_exp = [](float x) -> float {{{_EXP}}};  // inlined, so the loops vectorise it
+const float* din = depth_in.data;
+const double* sm = sums.data;  // line_prefix's planes: count, sum, sum of squares
+const int plane = width * height;
+float* dout = depth_out.data;
+const int per_row = (width + {LANES} - 1) / {LANES};
+const int row = block / per_row;
+const int col0 = (block - row * per_row) * {LANES};
+const int base = row * width + col0;
+const int lanes = wp::min({LANES}, width - col0);
+const float inv_r = range_sigma > 0.0f ? 1.0f / (2.0f * range_sigma * range_sigma) : 0.0f;
+const float flat = 0.0625f * range_sigma * range_sigma;
+const int step = axis == 0 ? 1 : width;
+const int limit = axis == 0 ? width : height;
+float d0[{LANES}], inv_s[{LANES}], s[{LANES}], ws[{LANES}];
+int taps[{LANES}], stride[{LANES}], pos[{LANES}], start[{LANES}], idx[{LANES}];
+int one = 0, wide = 0;
+for (int q = 0; q < {LANES}; ++q) {{
+    const float d = q < lanes ? din[base + q] : 0.0f;
+    d0[q] = d;
+    s[q] = d;
+    ws[q] = 1.0f;
+    idx[q] = q < lanes ? base + q : 0;
+    pos[q] = axis == 0 ? col0 + q : row;
+    start[q] = axis == 0 ? row * width : col0 + q;
+    taps[q] = 0;
+    stride[q] = 1;
+    inv_s[q] = 0.0f;
+    if (d > 0.0f) {{  // bilateral_radius, bilateral_sigma and tap_stride, as the scalar pass has them
+        const float sigma = wp::max(sigma_scale * focal * particle_radius / d, 0.5f);
+        const int rad = wp::min((int)wp::ceil(2.0f * sigma), max_radius);
+        const int st = (max_taps <= 0 || rad <= max_taps) ? 1 : (rad + max_taps - 1) / max_taps;
+        inv_s[q] = 1.0f / (2.0f * sigma * sigma);
+        stride[q] = st;
+        taps[q] = (rad + st - 1) / st;
+        if (st == 1) one = wp::max(one, taps[q]);
+        else wide = wp::max(wide, taps[q]);
+    }}
+}}
+if (one == 0 && wide == 0) {{
+    for (int q = 0; q < lanes; ++q) dout[base + q] = 0.0f;
+    return;
+}}
+// every pixel of the taps on each side, one exp for the spatial weight and one for the range's
+const int size = width * height;
+for (int k = 1; k <= one; ++k) {{
+    const int ra = base + k * step, la = base - k * step;  // pixel q's taps: ra + q and la + q
+    if (la >= 0 && ra + {LANES} <= size) {{  // the sixteen taps lie side by side in the image
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+    for (int q = 0; q < {LANES}; ++q) {{
+        const bool on = stride[q] == 1 && k <= taps[q];
+        const float ww = fast_exp(-(float)(k * k) * inv_s[q]);
+        const bool right = on && pos[q] + k < limit;
+        const bool left = on && pos[q] - k >= 0;
+        const float da = din[ra + q];
+        const float db = din[la + q];
+        const float za = da - d0[q];
+        const float zb = db - d0[q];
+        const float wa = right && da > 0.0f ? ww * fast_exp(-za * za * inv_r) : 0.0f;
+        const float wb = left && db > 0.0f ? ww * fast_exp(-zb * zb * inv_r) : 0.0f;
+        s[q] += wa * da;
+        ws[q] += wa;
+        s[q] += wb * db;
+        ws[q] += wb;
+    }}
+    }} else {{
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+    for (int q = 0; q < {LANES}; ++q) {{
+        const bool on = stride[q] == 1 && k <= taps[q];
+        const float ww = fast_exp(-(float)(k * k) * inv_s[q]);
+        const bool right = on && pos[q] + k < limit;
+        const bool left = on && pos[q] - k >= 0;
+        const float da = din[right ? idx[q] + k * step : 0];
+        const float db = din[left ? idx[q] - k * step : 0];
+        const float za = da - d0[q];
+        const float zb = db - d0[q];
+        const float wa = right && da > 0.0f ? ww * fast_exp(-za * za * inv_r) : 0.0f;
+        const float wb = left && db > 0.0f ? ww * fast_exp(-zb * zb * inv_r) : 0.0f;
+        s[q] += wa * da;
+        ws[q] += wa;
+        s[q] += wb * db;
+        ws[q] += wb;
+    }}
+    }}
+}}
+// wider kernels: a tap a stretch of stride pixels, at the stretch's mean depth from the line's
+// running sums where its depths spread little (stretch_tap); the others each pixel on its own
+unsigned int apart[{LANES}];
+int common = 0;  // the stride of every pixel with wide taps, -1 where they differ
+for (int q = 0; q < {LANES}; ++q) {{
+    apart[q] = 0u;
+    if (taps[q] > 0 && stride[q] > 1) common = (common == 0 || common == stride[q]) ? stride[q] : -1;
+}}
+const int p_lo = axis == 0 ? col0 : row;
+const int p_hi = axis == 0 ? col0 + {LANES} - 1 : row;
+for (int t = 1; t <= wide; ++t) {{
+    const int nc = (t - 1) * common + 1, fc = t * common;
+    if (common > 0 && lanes == {LANES} && p_hi + fc <= limit - 1 && p_lo - fc >= 1) {{
+        // one stride and no stretch cut by the line's ends: the sixteen pixels' sums lie side by side
+        const int r1 = base + fc * step, r0 = base + (nc - 1) * step;  // pixel q's: r1 + q, ...
+        const int l1 = base - nc * step, l0 = base - (fc + 1) * step;
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+        for (int q = 0; q < {LANES}; ++q) {{
+            const bool on = stride[q] > 1 && t <= taps[q];
+            const int near = nc, far = fc;
+            unsigned int split = 0u;
+            {{  // the right side's tap
+                const bool in = on;
+                const int first = pos[q] + near;
+                const int last = pos[q] + far;
+                // lines without wide kernels have no sums (stale numbers): only selected, never used
+                const int hi = r1 + q;
+                const bool below = true;
+                const int lo = r0 + q;
+                const double n = sm[hi] - (below ? sm[lo] : 0.0);
+                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
+                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
+                const bool some = in && n > 0.0;
+                const double inv = 1.0 / (some ? n : 1.0);
+                const double mean = some ? sum * inv : 0.0;
+                const float spread = (float)(sq * inv - mean * mean);
+                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
+                const float dz = (float)mean - d0[q];
+                const bool one_tap = some && spread <= flat;
+                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
+                s[q] += one_tap ? w * (float)mean : 0.0f;
+                ws[q] += w;
+                split |= (some && !one_tap) ? 1u : 0u;
+            }}
+            {{  // the left side's tap
+                const bool in = on;
+                const int first = pos[q] - far;
+                const int last = pos[q] - near;
+                // lines without wide kernels have no sums (stale numbers): only selected, never used
+                const int hi = l1 + q;
+                const bool below = true;
+                const int lo = l0 + q;
+                const double n = sm[hi] - (below ? sm[lo] : 0.0);
+                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
+                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
+                const bool some = in && n > 0.0;
+                const double inv = 1.0 / (some ? n : 1.0);
+                const double mean = some ? sum * inv : 0.0;
+                const float spread = (float)(sq * inv - mean * mean);
+                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
+                const float dz = (float)mean - d0[q];
+                const bool one_tap = some && spread <= flat;
+                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
+                s[q] += one_tap ? w * (float)mean : 0.0f;
+                ws[q] += w;
+                split |= (some && !one_tap) ? 2u : 0u;
+            }}
+            apart[q] |= split << (2 * ((t - 1) & 15));
+        }}
+    }} else {{
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+        for (int q = 0; q < {LANES}; ++q) {{
+            const bool on = stride[q] > 1 && t <= taps[q];
+            const int near = (t - 1) * stride[q] + 1;
+            const int far = t * stride[q];
+            unsigned int split = 0u;
+            {{  // the right side's tap
+                const bool in = on && pos[q] + near < limit;
+                const int first = pos[q] + near;
+                const int last = wp::min(pos[q] + far, limit - 1);
+                // lines without wide kernels have no sums (stale numbers): only selected, never used
+                const int hi = in ? start[q] + last * step : 0;
+                const bool below = in && first > 0;
+                const int lo = below ? start[q] + (first - 1) * step : 0;
+                const double n = sm[hi] - (below ? sm[lo] : 0.0);
+                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
+                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
+                const bool some = in && n > 0.0;
+                const double inv = 1.0 / (some ? n : 1.0);
+                const double mean = some ? sum * inv : 0.0;
+                const float spread = (float)(sq * inv - mean * mean);
+                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
+                const float dz = (float)mean - d0[q];
+                const bool one_tap = some && spread <= flat;
+                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
+                s[q] += one_tap ? w * (float)mean : 0.0f;
+                ws[q] += w;
+                split |= (some && !one_tap) ? 1u : 0u;
+            }}
+            {{  // the left side's tap
+                const bool in = on && pos[q] - near >= 0;
+                const int first = wp::max(pos[q] - far, 0);
+                const int last = pos[q] - near;
+                // lines without wide kernels have no sums (stale numbers): only selected, never used
+                const int hi = in ? start[q] + last * step : 0;
+                const bool below = in && first > 0;
+                const int lo = below ? start[q] + (first - 1) * step : 0;
+                const double n = sm[hi] - (below ? sm[lo] : 0.0);
+                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
+                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
+                const bool some = in && n > 0.0;
+                const double inv = 1.0 / (some ? n : 1.0);
+                const double mean = some ? sum * inv : 0.0;
+                const float spread = (float)(sq * inv - mean * mean);
+                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
+                const float dz = (float)mean - d0[q];
+                const bool one_tap = some && spread <= flat;
+                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
+                s[q] += one_tap ? w * (float)mean : 0.0f;
+                ws[q] += w;
+                split |= (some && !one_tap) ? 2u : 0u;
+            }}
+            apart[q] |= split << (2 * ((t - 1) & 15));
+        }}
+    }}
+    if ((t & 15) == 0 || t == wide) {{  // the stretches whose depths spread: each pixel on its own
+        const int t0 = (t - 1) & ~15;
+        for (int q = 0; q < lanes; ++q) {{
+            if (!apart[q]) continue;
+            for (int u = t0 + 1; u <= t; ++u) {{
+                const unsigned int bits = apart[q] >> (2 * ((u - 1) & 15));
+                for (int side = 0; side < 2; ++side) {{
+                    if (!((bits >> side) & 1u)) continue;
+                    const int near = (u - 1) * stride[q] + 1;
+                    const int far = u * stride[q];
+                    const int first = side == 0 ? pos[q] + near : wp::max(pos[q] - far, 0);
+                    const int last = side == 0 ? wp::min(pos[q] + far, limit - 1) : pos[q] - near;
+                    for (int i = first; i <= last; ++i) {{
+                        const float d = din[start[q] + i * step];
+                        if (d > 0.0f) {{
+                            const float k = (float)(i - pos[q]);
+                            const float z = d - d0[q];
+                            const float w = fast_exp(-k * k * inv_s[q] - z * z * inv_r);
+                            s[q] += w * d;
+                            ws[q] += w;
+                        }}
+                    }}
+                }}
+            }}
+            apart[q] = 0u;
+        }}
+    }}
+}}
+for (int q = 0; q < lanes; ++q) dout[base + q] = d0[q] > 0.0f ? s[q] / ws[q] : 0.0f;
+"""
+
+@wp.func_native(_EXP)
+def fast_exp(x: float) -> float:
+    """e^x for x in [-87, 88] (the clamp's ends beyond), vectorisable."""
+    ...
+
+
+@wp.func_native(_PASS)
+def bilateral_block(block: int, depth_in: wp.array(dtype=float), sums: wp.array(dtype=wp.float64),
+                    depth_out: wp.array(dtype=float), width: int, height: int, axis: int, focal: float,
+                    particle_radius: float, sigma_scale: float, range_sigma: float, max_radius: int,
+                    max_taps: int):
+    """``filters.bilateral_pass`` of the 16 pixels of block ``block`` (row-major blocks of 16
+    pixels of a row)."""
+    ...
+
+
+@wp.kernel
+def bilateral_pass_blocks(
+    offset: int,
+    depth_in: wp.array(dtype=float),
+    width: int,
+    height: int,
+    axis: int,
+    focal: float,
+    particle_radius: float,
+    sigma_scale: float,
+    range_sigma: float,
+    max_radius: int,
+    max_taps: int,
+    sums: wp.array(dtype=wp.float64),
+    depth_out: wp.array(dtype=float),
+):
+    """``filters.bilateral_pass`` (a particle-sized kernel, no fixed sigma) over blocks of
+    ``LANES`` pixels: launch ``blocks(width, height)``."""
+    bilateral_block(wp.tid() + offset, depth_in, sums, depth_out, width, height, axis, focal, particle_radius,
+                    sigma_scale, range_sigma, max_radius, max_taps)
+
+
+def blocks(width: int, height: int) -> int:
+    """The blocks of ``bilateral_pass_blocks`` for an image."""
+    return (width + LANES - 1) // LANES * height
