@@ -190,7 +190,13 @@ def test_the_cpus_vectorised_bilateral_is_the_warp_pass_to_rounding(ss, taps, mo
     (``pipeline.screen.native``): they must give the depths of the Warp kernel that CUDA runs, to
     float rounding. A sheet near in one quarter and four times as far elsewhere, 150 px (rows of
     blocks that end short): kernels of 14 px and of 4, taps every pixel, stretches of 4 pixels (a
-    depth step in a stretch sends it pixel by pixel) or none wider than 16, and the image's edges."""
+    depth step in a stretch sends it pixel by pixel) or none wider than 16, and the image's edges.
+    The stretches' running sums are the Warp kernel's bit for bit."""
+    import warp as wp
+
+    from pipeline.screen import filters as F
+    from pipeline.screen import native as N
+
     cam, sp = _bumpy_sheet_depth(ss, size=150)
     h, w = sp.depth.shape
     depth = sp.depth.copy()
@@ -198,7 +204,15 @@ def test_the_cpus_vectorised_bilateral_is_the_warp_pass_to_rounding(ss, taps, mo
     depth[: h // 2, w // 2:] *= 4.0
     p = DatasetConfig(bilateral_max_taps=taps)
     native = ss.bilateral(depth, cam, R, p)
-    monkeypatch.setattr(ss.launch, "cpu", False)  # the Warp kernel's way, on the same CPU
+    for axis in (0, 1):  # the stretches' running sums, bit for bit
+        sizes = [wp.array(depth.ravel()), w, h, axis, cam.focal_px, R, p.bilateral_sigma_px_scale,
+                 p.bilateral_max_radius_px, taps]
+        made = [wp.array(np.full(3 * h * w, np.nan)) for _ in range(2)]
+        ss.launch(N.line_prefix_blocks, N.lines(w, h, axis), [*sizes, made[0]])
+        ss.launch(F.line_prefix, h if axis == 0 else w, [*sizes, made[1]])
+        np.testing.assert_array_equal(made[0].numpy(), made[1].numpy())
+        assert np.isfinite(made[0].numpy()).any() == (taps == 4)
+    monkeypatch.setattr(ss.launch, "cpu", False)  # the Warp kernels' way, on the same CPU
     scalar = ss.bilateral(depth, cam, R, p)
     np.testing.assert_array_equal(native > 0, depth > 0)
     np.testing.assert_array_equal(scalar > 0, depth > 0)

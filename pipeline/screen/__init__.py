@@ -221,16 +221,16 @@ class ScreenSpace:
             return out
         a = self._buffer("pass", w * h)
         sums = self._buffer("line_sums", 3 * w * h, wp.float64)  # line_prefix's planes
+        sizes = [camera.focal_px, r, p.bilateral_sigma_px_scale, p.bilateral_max_radius_px, p.bilateral_max_taps]
         for axis, src, dst in ((0, depth, a), (1, a, out)):
-            if p.bilateral_max_taps:
-                self.launch(F.line_prefix, h if axis == 0 else w, [src, w, h, axis, camera.focal_px, r,
-                                                                   p.bilateral_sigma_px_scale,
-                                                                   p.bilateral_max_radius_px,
-                                                                   p.bilateral_max_taps, sums])
             if self.launch.cpu:  # sixteen pixels a vector (pipeline.screen.native)
+                if p.bilateral_max_taps:
+                    self.launch(N.line_prefix_blocks, N.lines(w, h, axis), [src, w, h, axis, *sizes, sums])
                 self.launch(N.bilateral_pass_blocks, N.blocks(w, h), [src, w, h, axis, *args, p.bilateral_max_taps,
                                                                       sums, dst])
             else:
+                if p.bilateral_max_taps:
+                    self.launch(F.line_prefix, h if axis == 0 else w, [src, w, h, axis, *sizes, sums])
                 self.launch(F.bilateral_pass, w * h, [src, w, h, axis, *args, 0.0, p.bilateral_max_taps, sums, dst])
         return out
 
