@@ -90,7 +90,19 @@ if (one == 0 && wide == 0) {{
     for (int q = 0; q < lanes; ++q) dout[base + q] = 0.0f;
     return;
 }}
-// every pixel of the taps on each side, one exp for the spatial weight and one for the range's
+// every pixel of the taps on each side, one exp for the spatial weight and one for the range's:
+// pixel q's tap k at depths da (right) and db (left), where they lie on its line
+auto pixel_taps = [&](int q, int k, float da, float db, bool right, bool left) {{
+    const float ww = fast_exp(-(float)(k * k) * inv_s[q]);
+    const float za = da - d0[q];
+    const float zb = db - d0[q];
+    const float wa = right && da > 0.0f ? ww * fast_exp(-za * za * inv_r) : 0.0f;
+    const float wb = left && db > 0.0f ? ww * fast_exp(-zb * zb * inv_r) : 0.0f;
+    s[q] += wa * da;
+    ws[q] += wa;
+    s[q] += wb * db;
+    ws[q] += wb;
+}};
 const int size = width * height;
 for (int k = 1; k <= one; ++k) {{
     const int ra = base + k * step, la = base - k * step;  // pixel q's taps: ra + q and la + q
@@ -98,46 +110,42 @@ for (int k = 1; k <= one; ++k) {{
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 #pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
 #endif
-    for (int q = 0; q < {LANES}; ++q) {{
-        const bool on = stride[q] == 1 && k <= taps[q];
-        const float ww = fast_exp(-(float)(k * k) * inv_s[q]);
-        const bool right = on && pos[q] + k < limit;
-        const bool left = on && pos[q] - k >= 0;
-        const float da = din[ra + q];
-        const float db = din[la + q];
-        const float za = da - d0[q];
-        const float zb = db - d0[q];
-        const float wa = right && da > 0.0f ? ww * fast_exp(-za * za * inv_r) : 0.0f;
-        const float wb = left && db > 0.0f ? ww * fast_exp(-zb * zb * inv_r) : 0.0f;
-        s[q] += wa * da;
-        ws[q] += wa;
-        s[q] += wb * db;
-        ws[q] += wb;
-    }}
+        for (int q = 0; q < {LANES}; ++q) {{
+            const bool on = stride[q] == 1 && k <= taps[q];
+            pixel_taps(q, k, din[ra + q], din[la + q], on && pos[q] + k < limit, on && pos[q] - k >= 0);
+        }}
     }} else {{
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 #pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
 #endif
-    for (int q = 0; q < {LANES}; ++q) {{
-        const bool on = stride[q] == 1 && k <= taps[q];
-        const float ww = fast_exp(-(float)(k * k) * inv_s[q]);
-        const bool right = on && pos[q] + k < limit;
-        const bool left = on && pos[q] - k >= 0;
-        const float da = din[right ? idx[q] + k * step : 0];
-        const float db = din[left ? idx[q] - k * step : 0];
-        const float za = da - d0[q];
-        const float zb = db - d0[q];
-        const float wa = right && da > 0.0f ? ww * fast_exp(-za * za * inv_r) : 0.0f;
-        const float wb = left && db > 0.0f ? ww * fast_exp(-zb * zb * inv_r) : 0.0f;
-        s[q] += wa * da;
-        ws[q] += wa;
-        s[q] += wb * db;
-        ws[q] += wb;
-    }}
+        for (int q = 0; q < {LANES}; ++q) {{
+            const bool on = stride[q] == 1 && k <= taps[q];
+            const bool right = on && pos[q] + k < limit;
+            const bool left = on && pos[q] - k >= 0;
+            pixel_taps(q, k, din[right ? idx[q] + k * step : 0], din[left ? idx[q] - k * step : 0], right, left);
+        }}
     }}
 }}
 // wider kernels: a tap a stretch of stride pixels, at the stretch's mean depth from the line's
-// running sums where its depths spread little (stretch_tap); the others each pixel on its own
+// running sums where its depths spread little (stretch_tap); the others each pixel on its own.
+// Pixel q's stretch first..last, its sums at hi minus (below) those at lo: 1 where its depths
+// spread (lines without wide kernels have no sums, stale numbers: only selected, never used)
+auto stretch_tap = [&](int q, bool in, int first, int last, int hi, bool below, int lo) -> unsigned int {{
+    const double n = sm[hi] - (below ? sm[lo] : 0.0);
+    const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
+    const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
+    const bool some = in && n > 0.0;
+    const double inv = 1.0 / (some ? n : 1.0);
+    const double mean = some ? sum * inv : 0.0;
+    const float spread = (float)(sq * inv - mean * mean);
+    const float centre = 0.5f * (float)(first + last) - (float)pos[q];
+    const float dz = (float)mean - d0[q];
+    const bool one_tap = some && spread <= flat;
+    const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
+    s[q] += one_tap ? w * (float)mean : 0.0f;
+    ws[q] += w;
+    return (some && !one_tap) ? 1u : 0u;
+}};
 unsigned int apart[{LANES}];
 int common = 0;  // the stride of every pixel with wide taps, -1 where they differ
 for (int q = 0; q < {LANES}; ++q) {{
@@ -157,54 +165,8 @@ for (int t = 1; t <= wide; ++t) {{
 #endif
         for (int q = 0; q < {LANES}; ++q) {{
             const bool on = stride[q] > 1 && t <= taps[q];
-            const int near = nc, far = fc;
-            unsigned int split = 0u;
-            {{  // the right side's tap
-                const bool in = on;
-                const int first = pos[q] + near;
-                const int last = pos[q] + far;
-                // lines without wide kernels have no sums (stale numbers): only selected, never used
-                const int hi = r1 + q;
-                const bool below = true;
-                const int lo = r0 + q;
-                const double n = sm[hi] - (below ? sm[lo] : 0.0);
-                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
-                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
-                const bool some = in && n > 0.0;
-                const double inv = 1.0 / (some ? n : 1.0);
-                const double mean = some ? sum * inv : 0.0;
-                const float spread = (float)(sq * inv - mean * mean);
-                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
-                const float dz = (float)mean - d0[q];
-                const bool one_tap = some && spread <= flat;
-                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
-                s[q] += one_tap ? w * (float)mean : 0.0f;
-                ws[q] += w;
-                split |= (some && !one_tap) ? 1u : 0u;
-            }}
-            {{  // the left side's tap
-                const bool in = on;
-                const int first = pos[q] - far;
-                const int last = pos[q] - near;
-                // lines without wide kernels have no sums (stale numbers): only selected, never used
-                const int hi = l1 + q;
-                const bool below = true;
-                const int lo = l0 + q;
-                const double n = sm[hi] - (below ? sm[lo] : 0.0);
-                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
-                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
-                const bool some = in && n > 0.0;
-                const double inv = 1.0 / (some ? n : 1.0);
-                const double mean = some ? sum * inv : 0.0;
-                const float spread = (float)(sq * inv - mean * mean);
-                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
-                const float dz = (float)mean - d0[q];
-                const bool one_tap = some && spread <= flat;
-                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
-                s[q] += one_tap ? w * (float)mean : 0.0f;
-                ws[q] += w;
-                split |= (some && !one_tap) ? 2u : 0u;
-            }}
+            unsigned int split = stretch_tap(q, on, pos[q] + nc, pos[q] + fc, r1 + q, true, r0 + q);
+            split |= stretch_tap(q, on, pos[q] - fc, pos[q] - nc, l1 + q, true, l0 + q) << 1;
             apart[q] |= split << (2 * ((t - 1) & 15));
         }}
     }} else {{
@@ -215,53 +177,15 @@ for (int t = 1; t <= wide; ++t) {{
             const bool on = stride[q] > 1 && t <= taps[q];
             const int near = (t - 1) * stride[q] + 1;
             const int far = t * stride[q];
-            unsigned int split = 0u;
-            {{  // the right side's tap
-                const bool in = on && pos[q] + near < limit;
-                const int first = pos[q] + near;
-                const int last = wp::min(pos[q] + far, limit - 1);
-                // lines without wide kernels have no sums (stale numbers): only selected, never used
-                const int hi = in ? start[q] + last * step : 0;
-                const bool below = in && first > 0;
-                const int lo = below ? start[q] + (first - 1) * step : 0;
-                const double n = sm[hi] - (below ? sm[lo] : 0.0);
-                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
-                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
-                const bool some = in && n > 0.0;
-                const double inv = 1.0 / (some ? n : 1.0);
-                const double mean = some ? sum * inv : 0.0;
-                const float spread = (float)(sq * inv - mean * mean);
-                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
-                const float dz = (float)mean - d0[q];
-                const bool one_tap = some && spread <= flat;
-                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
-                s[q] += one_tap ? w * (float)mean : 0.0f;
-                ws[q] += w;
-                split |= (some && !one_tap) ? 1u : 0u;
-            }}
-            {{  // the left side's tap
-                const bool in = on && pos[q] - near >= 0;
-                const int first = wp::max(pos[q] - far, 0);
-                const int last = pos[q] - near;
-                // lines without wide kernels have no sums (stale numbers): only selected, never used
-                const int hi = in ? start[q] + last * step : 0;
-                const bool below = in && first > 0;
-                const int lo = below ? start[q] + (first - 1) * step : 0;
-                const double n = sm[hi] - (below ? sm[lo] : 0.0);
-                const double sum = sm[plane + hi] - (below ? sm[plane + lo] : 0.0);
-                const double sq = sm[2 * plane + hi] - (below ? sm[2 * plane + lo] : 0.0);
-                const bool some = in && n > 0.0;
-                const double inv = 1.0 / (some ? n : 1.0);
-                const double mean = some ? sum * inv : 0.0;
-                const float spread = (float)(sq * inv - mean * mean);
-                const float centre = 0.5f * (float)(first + last) - (float)pos[q];
-                const float dz = (float)mean - d0[q];
-                const bool one_tap = some && spread <= flat;
-                const float w = one_tap ? (float)n * fast_exp(-centre * centre * inv_s[q] - dz * dz * inv_r) : 0.0f;
-                s[q] += one_tap ? w * (float)mean : 0.0f;
-                ws[q] += w;
-                split |= (some && !one_tap) ? 2u : 0u;
-            }}
+            const bool right = on && pos[q] + near < limit;  // the right side's tap, then the left's
+            const int r_first = pos[q] + near, r_last = wp::min(pos[q] + far, limit - 1);
+            unsigned int split = stretch_tap(q, right, r_first, r_last, right ? start[q] + r_last * step : 0,
+                                             right, right ? start[q] + (r_first - 1) * step : 0);
+            const bool left = on && pos[q] - near >= 0;
+            const int l_first = wp::max(pos[q] - far, 0), l_last = pos[q] - near;
+            const bool below = left && l_first > 0;
+            split |= stretch_tap(q, left, l_first, l_last, left ? start[q] + l_last * step : 0, below,
+                                 below ? start[q] + (l_first - 1) * step : 0) << 1;
             apart[q] |= split << (2 * ((t - 1) & 15));
         }}
     }}
