@@ -167,6 +167,32 @@ def test_the_cpus_vectorised_anisotropy_is_the_hash_grid_loops_to_rounding(launc
         np.testing.assert_array_equal(got[~picked], rest[~picked])
 
 
+def test_the_cpus_vectorised_density_is_the_hash_grid_loops_to_rounding(launch, monkeypatch):
+    """The density at each kernel centre on the CPU (``native.density_of_table``: the kernels copied
+    into the cell table's order, 16 candidates a vector) against the hash grid's scalar loop
+    (``kernels.centre_density``, CUDA's path), on the same scene as the anisotropy's test: the same
+    densities to float rounding, exactly the cap where the scalar loop reaches it, the rest density
+    for the particles left out."""
+    from pipeline.surface import DENSITY_CAP, KernelMaker
+
+    rng = np.random.default_rng(5)
+    sheet, _, _ = _sheet((0.3, 1.0, 0.2))
+    spray = rng.uniform(-0.3, 0.3, (400, 3)).astype(np.float32)
+    x = np.concatenate([_lattice_ball(0.08) - np.float32([0.13, 0.05, 0.0]), sheet + np.float32([0.2, 0.0, 0.1]),
+                        spray])
+    maker = KernelMaker(x, R, DatasetConfig(), launch, "cpu")
+    kernels = maker.all()
+    picked = rng.random(len(x)) < 0.7
+    native = maker.densities(kernels, picked)
+    monkeypatch.setattr(launch, "cpu", False)  # the hash grid's loop, on the same CPU
+    scalar = maker.densities(kernels, picked)
+    capped = scalar >= DENSITY_CAP
+    assert 0 < capped.sum() < picked.sum() and (scalar[picked] < 0.5).any()  # dense, spray and between
+    np.testing.assert_array_equal(native[capped], DENSITY_CAP)
+    np.testing.assert_allclose(native, scalar, rtol=2e-6)
+    np.testing.assert_array_equal(native[~picked], maker.rest)
+
+
 def test_anisotropic_surface_is_flatter_than_isotropic(launch):
     """Same jittered sheet, same iso level: Yu & Turk's kernels against plain isotropic kernels
     of radius h without centre smoothing. Mean normal deviation on the top face: the

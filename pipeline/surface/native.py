@@ -1,13 +1,17 @@
-"""The CPU's fast path of the anisotropy (``kernels.py`` holds the method): each particle's weighted
-neighbour moments summed in C++ (``wp.func_native``) over a cell table, 16 neighbours a vector.
+"""The CPU's fast paths of the anisotropy and the density at the kernel centres (``kernels.py``
+holds the methods): sums over a cell table in C++ (``wp.func_native``), 16 neighbours a vector.
 
 Warp compiles its kernels to scalar CPU code, one neighbour at a time through the hash grid's query;
 a particle's 500 neighbours within the covariance support (2h = 10 r) then cost about 4 ns each.
 Here the particles sorted by the hash grid's cell order (``CellTable``) make each row of cells one
-contiguous run of positions; a row is cut to the support sphere's chord through it, and its
-neighbours go 16 at a time through a loop the CPU compiler vectorises (square roots, divisions and
-the ten weighted moments at once, in 16 partial sums a moment). The sums' order is not the scalar
-loop's, so the kernels equal the hash grid path's to float rounding (tested), not bit for bit.
+contiguous run of positions; for the anisotropy a row is cut to the support sphere's chord through
+it, and its neighbours go 16 at a time through a loop the CPU compiler vectorises (square roots,
+divisions and the ten weighted moments at once, in 16 partial sums a moment). The density reads
+the kernels (centre, bounding radius, G, det G) copied into the table's order as planes
+(``table_kernels``), so a row's kernels load side by side too. Sixteen lanes read sixteen entries
+side by side even past a run's end (those lanes count nothing): a lane index that stops at the run
+made the compiler gather each one, 1.6-2x slower. The sums' order is not the scalar loop's, so the
+kernels and densities equal the hash grid path's to float rounding (tested), not bit for bit.
 """
 
 import warp as wp
@@ -81,10 +85,28 @@ runs them as two vectors of 8)."""
 Moments = wp.types.vector(length=11, dtype=wp.float32)
 """sum w, sum w r (3), sum w r r^T (xx, xy, xz, yy, yz, zz) and the neighbour count."""
 
+_ROW_RUNS = """
+const int* first = t.first.data;
+// v's slot along an axis of d slots (Warp's hash_grid_index)
+auto wrap = [](int v, int d) -> int { const int m = v % d; return m < 0 ? m + d : m; };
+// the table entries of slots ca..cb of the row of slots starting at ``row`` as one run
+// [runs[0], runs[1]), or two where the row wraps round the table's edge; returns how many
+auto row_runs = [&](int row, int ca, int cb, int* runs) -> int {
+    runs[0] = first[row + ca];
+    if (ca <= cb) {
+        runs[1] = first[row + cb + 1];
+        return 1;
+    }
+    runs[1] = first[row + t.dim_x];
+    runs[2] = first[row];
+    runs[3] = first[row + cb + 1];
+    return 2;
+};
+"""
+
 _MOMENTS = f"""
 const float* xs = reinterpret_cast<const float*>(t.x.data);
-const int* first = t.first.data;
-const float inv = t.inv;
+{_ROW_RUNS}const float inv = t.inv;
 const float cell = t.cell;
 const float s = support;
 const float s2 = s * s;
@@ -95,6 +117,28 @@ for (int q = 0; q < {LANES}; ++q) {{
     aw[q] = a0[q] = a1[q] = a2[q] = axx[q] = axy[q] = axz[q] = ayy[q] = ayz[q] = azz[q] = 0.0f;
     an[q] = 0;
 }}
+const int entries = t.ids.shape[0];
+// entry k's offset from xi, weighted into lane q's moments where it lies within the support
+auto add = [&](int q, int k, bool live) {{
+    const float r0 = xs[3 * k] - xi.c[0];
+    const float r1 = xs[3 * k + 1] - xi.c[1];
+    const float r2 = xs[3 * k + 2] - xi.c[2];
+    const float d2 = r0 * r0 + r1 * r1 + r2 * r2;
+    const bool in = live && d2 < s2;
+    const float tt = wp::sqrt(d2) / s;
+    const float w = in ? 1.0f - tt * tt * tt : 0.0f;
+    aw[q] += w;
+    a0[q] += r0 * w;
+    a1[q] += r1 * w;
+    a2[q] += r2 * w;
+    axx[q] += r0 * r0 * w;
+    axy[q] += r0 * r1 * w;
+    axz[q] += r0 * r2 * w;
+    ayy[q] += r1 * r1 * w;
+    ayz[q] += r1 * r2 * w;
+    azz[q] += r2 * r2 * w;
+    an[q] += in ? 1 : 0;
+}};
 // the cells the hash grid's query visits (each axis at most once round the table: a table narrower
 // than the query, which Warp's too caps so, is read without culling), rows along x cut to the
 // support sphere's chord through them
@@ -105,21 +149,16 @@ const int x1 = wp::min((int)wp::floor((xi.c[0] + s) * inv), x0 + t.dim_x - 1);
 const int y1 = wp::min((int)wp::floor((xi.c[1] + s) * inv), y0 + t.dim_y - 1);
 const int z1 = wp::min((int)wp::floor((xi.c[2] + s) * inv), z0 + t.dim_z - 1);
 const bool cull = x1 - x0 + 1 < t.dim_x && y1 - y0 + 1 < t.dim_y && z1 - z0 + 1 < t.dim_z;
-const int dx = t.dim_x;
 for (int z = z0; z <= z1; ++z) {{
     const float lz = z * cell;
     const float gz = wp::max(0.0f, wp::max(lz - xi.c[2], xi.c[2] - (lz + cell)));
-    int cz = z % t.dim_z;
-    if (cz < 0) cz += t.dim_z;
+    const int cz = wrap(z, t.dim_z);
     for (int y = y0; y <= y1; ++y) {{
         const float ly = y * cell;
         const float gy = wp::max(0.0f, wp::max(ly - xi.c[1], xi.c[1] - (ly + cell)));
         // a little past the support, for rounding: the lanes still test d2 < s2 exactly
         const float rest = s2 * 1.002f - gz * gz - gy * gy;
         if (cull && rest < 0.0f) continue;
-        int cy = y % t.dim_y;
-        if (cy < 0) cy += t.dim_y;
-        const int row = (cz * t.dim_y + cy) * dx;
         int xa = x0, xb = x1;
         if (cull) {{
             const float half = wp::sqrt(rest);
@@ -127,48 +166,23 @@ for (int z = z0; z <= z1; ++z) {{
             xb = wp::min(x1, (int)wp::floor((xi.c[0] + half) * inv));
             if (xb < xa) continue;
         }}
-        int ca = xa % dx;
-        if (ca < 0) ca += dx;
-        int cb = xb % dx;
-        if (cb < 0) cb += dx;
         int runs[4];
-        int nruns = 1;
-        runs[0] = first[row + ca];
-        if (ca <= cb) {{
-            runs[1] = first[row + cb + 1];
-        }} else {{  // the row wraps round the table's edge
-            runs[1] = first[row + dx];
-            runs[2] = first[row];
-            runs[3] = first[row + cb + 1];
-            nruns = 2;
-        }}
+        const int nruns = row_runs((cz * t.dim_y + wrap(y, t.dim_y)) * t.dim_x, wrap(xa, t.dim_x), wrap(xb, t.dim_x),
+                                   runs);
         for (int g = 0; g < nruns; ++g) {{
             const int end = runs[2 * g + 1];
             for (int k0 = runs[2 * g]; k0 < end; k0 += {LANES}) {{
                 const int m = end - k0;
+                if (k0 + {LANES} <= entries) {{  // the lanes read side by side, those past the run weigh 0
 #if defined(__clang__) && !defined(__CUDA_ARCH__)
 #pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
 #endif
-                for (int q = 0; q < {LANES}; ++q) {{
-                    const int k = k0 + (q < m ? q : 0);  // lanes past the run reread its first entry, weight 0
-                    const float r0 = xs[3 * k] - xi.c[0];
-                    const float r1 = xs[3 * k + 1] - xi.c[1];
-                    const float r2 = xs[3 * k + 2] - xi.c[2];
-                    const float d2 = r0 * r0 + r1 * r1 + r2 * r2;
-                    const bool in = q < m && d2 < s2;
-                    const float tt = wp::sqrt(d2) / s;
-                    const float w = in ? 1.0f - tt * tt * tt : 0.0f;
-                    aw[q] += w;
-                    a0[q] += r0 * w;
-                    a1[q] += r1 * w;
-                    a2[q] += r2 * w;
-                    axx[q] += r0 * r0 * w;
-                    axy[q] += r0 * r1 * w;
-                    axz[q] += r0 * r2 * w;
-                    ayy[q] += r1 * r1 * w;
-                    ayz[q] += r1 * r2 * w;
-                    azz[q] += r2 * r2 * w;
-                    an[q] += in ? 1 : 0;
+                    for (int q = 0; q < {LANES}; ++q) add(q, k0 + q, q < m);
+                }} else {{  // at the table's end the lanes past the run reread its first entry instead
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+                    for (int q = 0; q < {LANES}; ++q) add(q, k0 + (q < m ? q : 0), q < m);
                 }}
             }}
         }}
@@ -218,3 +232,110 @@ def anisotropy_of_table(
     wrr = wp.mat33(m[4], m[5], m[6], m[5], m[7], m[8], m[6], m[8], m[9])
     anisotropy_from_moments(i, xi, m[0], wp.vec3(m[1], m[2], m[3]), wrr, int(m[10]), a, centre_out, g_out,
                             extent_out)
+
+
+KERNEL_PLANES = 14
+"""``table_kernels``' planes: the kernel centre (3), its squared bounding radius (a little past, as
+``kernels.centre_density`` tests it), G's nine entries row by row and det G."""
+
+
+@wp.kernel
+def table_kernels(offset: int, t: CellTable, centres: wp.array(dtype=wp.vec3), kernel_g: wp.array(dtype=wp.mat33),
+                  extents: wp.array(dtype=float), planes: wp.array(dtype=float)):
+    """Each table entry's kernel in the table's order, ``KERNEL_PLANES`` planes of one float an entry:
+    a row of cells' kernels then lie side by side for ``table_density``."""
+    k = wp.tid() + offset
+    n = t.ids.shape[0]
+    j = t.ids[k]
+    c = centres[j]
+    e = extents[j]
+    g = kernel_g[j]
+    planes[k] = c[0]
+    planes[n + k] = c[1]
+    planes[2 * n + k] = c[2]
+    planes[3 * n + k] = e * e * 1.001
+    for a in range(3):
+        for b in range(3):
+            planes[(4 + 3 * a + b) * n + k] = g[a, b]
+    planes[13 * n + k] = wp.determinant(g)
+
+
+_DENSITY = f"""
+{_ROW_RUNS}
+const float* kp = planes.data;
+const int n = t.ids.shape[0];
+const float inv = t.inv;
+float phi[{LANES}];
+for (int q = 0; q < {LANES}; ++q) phi[q] = 0.0f;
+float total = 0.0f;
+// entry k's kernel at ci into lane q's sum
+auto add = [&](int q, int k, bool live) {{
+    const float r0 = ci.c[0] - kp[k];
+    const float r1 = ci.c[1] - kp[n + k];
+    const float r2 = ci.c[2] - kp[2 * n + k];
+    const bool in = live && r0 * r0 + r1 * r1 + r2 * r2 < kp[3 * n + k];
+    const float u0 = kp[4 * n + k] * r0 + kp[5 * n + k] * r1 + kp[6 * n + k] * r2;
+    const float u1 = kp[7 * n + k] * r0 + kp[8 * n + k] * r1 + kp[9 * n + k] * r2;
+    const float u2 = kp[10 * n + k] * r0 + kp[11 * n + k] * r1 + kp[12 * n + k] * r2;
+    const float q2 = u0 * u0 + u1 * u1 + u2 * u2;
+    const float w = 1.0f - q2;
+    phi[q] += in && q2 < 1.0f ? kp[13 * n + k] * w * w * w : 0.0f;
+}};
+// every cell the hash grid's query visits around xi (the kernel's bounding radius decides, not the
+// distance to xi: no cell is culled), each axis at most once round the table
+const int x0 = (int)wp::floor((xi.c[0] - reach) * inv);
+const int y0 = (int)wp::floor((xi.c[1] - reach) * inv);
+const int z0 = (int)wp::floor((xi.c[2] - reach) * inv);
+const int x1 = wp::min((int)wp::floor((xi.c[0] + reach) * inv), x0 + t.dim_x - 1);
+const int y1 = wp::min((int)wp::floor((xi.c[1] + reach) * inv), y0 + t.dim_y - 1);
+const int z1 = wp::min((int)wp::floor((xi.c[2] + reach) * inv), z0 + t.dim_z - 1);
+// the slots wrapped once a query, then stepped (the rows' columns are the same for all)
+const int ca = wrap(x0, t.dim_x), cb = wrap(x1, t.dim_x), cy0 = wrap(y0, t.dim_y);
+int cz = wrap(z0, t.dim_z);
+for (int z = z0; z <= z1; ++z, cz = cz + 1 == t.dim_z ? 0 : cz + 1) {{
+    int cy = cy0;
+    for (int y = y0; y <= y1; ++y, cy = cy + 1 == t.dim_y ? 0 : cy + 1) {{
+        int runs[4];
+        const int nruns = row_runs((cz * t.dim_y + cy) * t.dim_x, ca, cb, runs);
+        for (int g = 0; g < nruns; ++g) {{
+            const int end = runs[2 * g + 1];
+            for (int k0 = runs[2 * g]; k0 < end; k0 += {LANES}) {{
+                const int m = end - k0;
+                if (k0 + {LANES} <= n) {{  // the lanes read side by side, those past the run count nothing
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+                    for (int q = 0; q < {LANES}; ++q) add(q, k0 + q, q < m);
+                }} else {{  // at the table's end the lanes past the run reread its first entry instead
+#if defined(__clang__) && !defined(__CUDA_ARCH__)
+#pragma clang loop vectorize(assume_safety) vectorize_width({LANES}) interleave(disable)
+#endif
+                    for (int q = 0; q < {LANES}; ++q) add(q, k0 + (q < m ? q : 0), q < m);
+                }}
+            }}
+        }}
+        // the cap, a row of cells at a time (past it the sum is the cap whatever follows)
+        total = 0.0f;
+        for (int q = 0; q < {LANES}; ++q) total += phi[q];
+        if (total * amplitude >= cap) return cap;
+    }}
+}}
+return wp::min(total * amplitude, cap);
+"""
+
+
+@wp.func_native(_DENSITY)
+def table_density(xi: wp.vec3, ci: wp.vec3, t: CellTable, planes: wp.array(dtype=float), reach: float,
+                  amplitude: float, cap: float) -> float:
+    """``kernels.centre_density`` at ``ci`` of the kernels (``table_kernels``' planes) of the table's
+    entries in the cells within ``reach`` of ``xi``."""
+    ...
+
+
+@wp.kernel
+def density_of_table(offset: int, which: wp.array(dtype=int), t: CellTable, particle_x: wp.array(dtype=wp.vec3),
+                     centres: wp.array(dtype=wp.vec3), planes: wp.array(dtype=float), reach: float, amplitude: float,
+                     cap: float, density_out: wp.array(dtype=float)):
+    """``kernels.centre_density`` of the particles listed in ``which``, 16 candidates a vector."""
+    i = which[wp.tid() + offset]
+    density_out[i] = table_density(particle_x[i], centres[i], t, planes, reach, amplitude, cap)
