@@ -234,9 +234,10 @@ def anisotropy_of_table(
                             extent_out)
 
 
-KERNEL_PLANES = 14
+KERNEL_PLANES = 11
 """``table_kernels``' planes: the kernel centre (3), its squared bounding radius (a little past, as
-``kernels.centre_density`` tests it), G's nine entries row by row and det G."""
+``kernels.centre_density`` tests it), G's upper triangle (00, 01, 02, 11, 12, 22: G is symmetric,
+to the rounding of the products that make it) and det G."""
 
 
 @wp.kernel
@@ -254,10 +255,13 @@ def table_kernels(offset: int, t: CellTable, centres: wp.array(dtype=wp.vec3), k
     planes[n + k] = c[1]
     planes[2 * n + k] = c[2]
     planes[3 * n + k] = e * e * 1.001
-    for a in range(3):
-        for b in range(3):
-            planes[(4 + 3 * a + b) * n + k] = g[a, b]
-    planes[13 * n + k] = wp.determinant(g)
+    planes[4 * n + k] = g[0, 0]
+    planes[5 * n + k] = g[0, 1]
+    planes[6 * n + k] = g[0, 2]
+    planes[7 * n + k] = g[1, 1]
+    planes[8 * n + k] = g[1, 2]
+    planes[9 * n + k] = g[2, 2]
+    planes[10 * n + k] = wp.determinant(g)
 
 
 _DENSITY = f"""
@@ -274,12 +278,13 @@ auto add = [&](int q, int k, bool live) {{
     const float r1 = ci.c[1] - kp[n + k];
     const float r2 = ci.c[2] - kp[2 * n + k];
     const bool in = live && r0 * r0 + r1 * r1 + r2 * r2 < kp[3 * n + k];
-    const float u0 = kp[4 * n + k] * r0 + kp[5 * n + k] * r1 + kp[6 * n + k] * r2;
-    const float u1 = kp[7 * n + k] * r0 + kp[8 * n + k] * r1 + kp[9 * n + k] * r2;
-    const float u2 = kp[10 * n + k] * r0 + kp[11 * n + k] * r1 + kp[12 * n + k] * r2;
+    const float g01 = kp[5 * n + k], g02 = kp[6 * n + k], g12 = kp[8 * n + k];
+    const float u0 = kp[4 * n + k] * r0 + g01 * r1 + g02 * r2;
+    const float u1 = g01 * r0 + kp[7 * n + k] * r1 + g12 * r2;
+    const float u2 = g02 * r0 + g12 * r1 + kp[9 * n + k] * r2;
     const float q2 = u0 * u0 + u1 * u1 + u2 * u2;
     const float w = 1.0f - q2;
-    phi[q] += in && q2 < 1.0f ? kp[13 * n + k] * w * w * w : 0.0f;
+    phi[q] += in && q2 < 1.0f ? kp[10 * n + k] * w * w * w : 0.0f;
 }};
 // every cell the hash grid's query visits around xi (the kernel's bounding radius decides, not the
 // distance to xi: no cell is culled), each axis at most once round the table
