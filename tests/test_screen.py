@@ -390,6 +390,31 @@ def test_ellipsoids_flatten_a_sheet(ss, launch):
     np.testing.assert_allclose(ellipsoids["aniso.N"][inner], ss.normals(ellipsoids["aniso.Z"], cam)[inner])
 
 
+def test_the_cpus_row_splat_of_ellipsoids_is_the_warp_kernels_bit_for_bit(ss, launch, monkeypatch):
+    """On the CPU the ellipsoid splat's first pass runs each row of a box sixteen pixels a vector
+    (``native.splat_ellipsoid_rows``): the same arithmetic as the Warp kernel CUDA runs, so the same
+    depth, mask, chord thickness and largest density bit for bit, in row bands and on one band;
+    the splat with normals (the Warp kernel's two passes) draws the same depth."""
+    from pipeline.surface import particle_ellipsoids
+
+    rng = np.random.default_rng(12)
+    x = (rng.normal(size=(3000, 3)) * (0.06, 0.03, 0.05) + (0.01, -0.02, -0.55)).astype(np.float32)
+    ell = particle_ellipsoids(x, R, DatasetConfig(), launch, density=True)
+    cam = Camera(look_at((0.15, 0.1, -0.3), (0.01, -0.02, -0.55)), 40.0, 150, 130)  # rows of 150
+    def maps(splat):  # depth, mask, thickness and density (not the normals)
+        depth, mask, thickness, _, density = splat
+        return [a.numpy().copy() for a in (depth, mask, thickness, density)]
+
+    native = maps(ss._splat_ellipsoids(ell, cam))
+    with_normals = ss._splat_ellipsoids(ell, cam, with_normals=True)[0].numpy().copy()
+    monkeypatch.setattr(ss.launch, "cpu", False)  # the Warp kernel, one band
+    scalar = maps(ss._splat_ellipsoids(ell, cam))
+    assert native[1].sum() > 2000 and (native[3] > 0).any()
+    for got, want in zip(native, scalar, strict=True):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(with_normals, native[0])
+
+
 def test_ellipsoids_kept_on_the_device_splat_as_the_hosts(ss, launch):
     """``particle_ellipsoids(on_device=True)`` (a GPU's way; here on the CPU's Warp arrays) leaves
     the ellipsoids as arrays where the anisotropy made them: their shapes and bounds are the host's
