@@ -26,7 +26,7 @@ scalar loop). Both passes' sums: 14.5 -> 3.1 ms at 38k particles, 7.4 -> 1.5 ms 
 
 import warp as wp
 
-from pipeline.screen import kernels as K
+from pipeline.screen.kernels import splat_bounds
 
 wp.set_module_options({"enable_backward": False})
 
@@ -456,7 +456,7 @@ def splat_ellipsoid_rows(
     rows are its own: plain stores, no atomics."""
     i = wp.tid() + offset
     c = centers_view[i]
-    box = K.splat_bounds(c, bounds[i], focal, width, height, row0, row1)
+    box = splat_bounds(c, bounds[i], focal, width, height, row0, row1)
     m = shapes[i]
     dens = float(0.0)
     if with_density != 0:
