@@ -201,10 +201,10 @@ class ScreenSpace:
             if self.launch.cpu and not with_normals:  # each box row sixteen pixels a vector (screen.native)
                 self.launch.tasks(N.splat_ellipsoid_rows, n, [[*args, r0, r1, depth, thickness, *drawn]
                                                               for r0, r1 in bands])
-                bands = []
-            for normals_pass in (0, 1) if with_normals and bands else (0,) if bands else ():
-                self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals,
-                                                           *drawn] for r0, r1 in bands])
+            else:
+                for normals_pass in (0, 1) if with_normals else (0,):
+                    self.launch.tasks(K.splat_ellipsoids, n, [[*args, r0, r1, normals_pass, depth, thickness, normals,
+                                                               *drawn] for r0, r1 in bands])
         self.launch(K.finish_splat, w * h, [depth, _EMPTY * 0.5, mask])
         return depth, mask, thickness, normals, density
 

@@ -294,14 +294,12 @@ const int z0 = (int)wp::floor((xi.c[2] - reach) * inv);
 const int x1 = wp::min((int)wp::floor((xi.c[0] + reach) * inv), x0 + t.dim_x - 1);
 const int y1 = wp::min((int)wp::floor((xi.c[1] + reach) * inv), y0 + t.dim_y - 1);
 const int z1 = wp::min((int)wp::floor((xi.c[2] + reach) * inv), z0 + t.dim_z - 1);
-// the slots wrapped once a query, then stepped (the rows' columns are the same for all)
-const int ca = wrap(x0, t.dim_x), cb = wrap(x1, t.dim_x), cy0 = wrap(y0, t.dim_y);
-int cz = wrap(z0, t.dim_z);
-for (int z = z0; z <= z1; ++z, cz = cz + 1 == t.dim_z ? 0 : cz + 1) {{
-    int cy = cy0;
-    for (int y = y0; y <= y1; ++y, cy = cy + 1 == t.dim_y ? 0 : cy + 1) {{
+const int ca = wrap(x0, t.dim_x), cb = wrap(x1, t.dim_x);  // every row spans the same columns
+for (int z = z0; z <= z1; ++z) {{
+    const int cz = wrap(z, t.dim_z);
+    for (int y = y0; y <= y1; ++y) {{
         int runs[4];
-        const int nruns = row_runs((cz * t.dim_y + cy) * t.dim_x, ca, cb, runs);
+        const int nruns = row_runs((cz * t.dim_y + wrap(y, t.dim_y)) * t.dim_x, ca, cb, runs);
         for (int g = 0; g < nruns; ++g) {{
             const int end = runs[2 * g + 1];
             for (int k0 = runs[2 * g]; k0 < end; k0 += {LANES}) {{
