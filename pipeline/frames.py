@@ -76,17 +76,27 @@ def sequence_bounds(folder: Path, count: int, stray: float = 0.0) -> tuple[np.nd
     """The box holding the particles of cached frames 1..count (what a camera must keep in view):
     every one, or with ``stray`` > 0 the bulk of each frame, leaving out up to that share of its
     particles beyond each side on each axis (flying droplets, which may then leave the picture)."""
+    boxes = [frame_bounds(load_frame(Path(folder) / frame_name(i))[0], stray) for i in range(1, count + 1)]
+    return union_bounds(boxes)
+
+
+def frame_bounds(x: np.ndarray, stray: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """One frame's part of ``sequence_bounds``: the box of its particles, or of their bulk with
+    ``stray`` > 0; None for a frame without particles."""
+    if not len(x):
+        return None
+    if stray > 0:
+        x = x[:: max(1, len(x) // 200_000)]  # the quantiles of a sample
+        return tuple(np.quantile(x, [stray, 1.0 - stray], axis=0, method="inverted_cdf"))
+    return bounds(x)
+
+
+def union_bounds(boxes) -> tuple[np.ndarray, np.ndarray]:
+    """The box around every box of ``frame_bounds`` (None: an empty frame); infinite when all are."""
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for i in range(1, count + 1):
-        x, _ = load_frame(Path(folder) / frame_name(i))
-        if not len(x):
-            continue
-        if stray > 0:
-            x = x[:: max(1, len(x) // 200_000)]  # the quantiles of a sample
-            a, b = np.quantile(x, [stray, 1.0 - stray], axis=0, method="inverted_cdf")
-        else:
-            a, b = bounds(x)
-        lo, hi = np.minimum(lo, a), np.maximum(hi, b)
+    for box in boxes:
+        if box is not None:
+            lo, hi = np.minimum(lo, box[0]), np.maximum(hi, box[1])
     return lo, hi
 
 
@@ -114,5 +124,5 @@ def completed_frames(folder: Path, total: int) -> int:
     return k
 
 
-__all__ = ["SequenceInfo", "frame_name", "select_frames", "spread", "sequence_bounds", "save_frame", "load_frame",
-           "write_sequence_info", "read_sequence_info", "completed_frames"]
+__all__ = ["SequenceInfo", "frame_name", "select_frames", "spread", "sequence_bounds", "frame_bounds", "union_bounds",
+           "save_frame", "load_frame", "write_sequence_info", "read_sequence_info", "completed_frames"]

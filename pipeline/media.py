@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import subprocess
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -50,31 +53,83 @@ X264 = ["-preset", "veryfast", "-crf", "24"]
 36.7 dB and 0.97 MB."""
 
 
+class VideoWriter:
+    """An H.264 (yuv420p) MP4 encoded by the ffmpeg bundled in imageio-ffmpeg as its 8-bit RGB frames
+    come (``send``), so a renderer's video is made while it renders. The file appears at ``path``
+    only when the ``with`` block ends without an error and ffmpeg reports success (a disk that fills
+    as it finishes the file leaves nothing behind)."""
+
+    def __init__(self, path: Path, fps: float):
+        self.path, self.fps = Path(path), fps
+        self._stack = contextlib.ExitStack()
+        self._tmp: Path | None = None
+        self._ffmpeg: subprocess.Popen | None = None
+        self._pad = (0, 0)
+        self._errors = ""
+
+    def __enter__(self) -> VideoWriter:
+        self._tmp = self._stack.enter_context(atomic_path(self.path))
+        return self
+
+    def send(self, image: np.ndarray) -> None:
+        """Append a frame (H x W x 3 or 4 uint8; every frame the first one's size)."""
+        img = np.asarray(image)[..., :3]
+        if self._ffmpeg is None:
+            self._start(*img.shape[:2])
+        if any(self._pad):
+            img = np.pad(img, ((0, self._pad[0]), (0, self._pad[1]), (0, 0)))
+        try:
+            self._ffmpeg.stdin.write(np.ascontiguousarray(img, np.uint8).data)
+        except OSError:  # ffmpeg stopped: it says why when it is waited for
+            self._finish()
+            raise self._failure() from None
+
+    def _start(self, h: int, w: int) -> None:
+        import imageio_ffmpeg
+
+        self._pad = (h % 2, w % 2)  # yuv420p needs even sides
+        fps = str(Fraction(self.fps).limit_denominator())
+        self._ffmpeg = subprocess.Popen(
+            [imageio_ffmpeg.get_ffmpeg_exe(), "-y", "-loglevel", "error", "-f", "rawvideo", "-vcodec", "rawvideo",
+             "-s", f"{w + self._pad[1]}x{h + self._pad[0]}", "-pix_fmt", "rgb24", "-r", fps, "-i", "-",
+             "-vcodec", "libx264", "-pix_fmt", "yuv420p", *X264, "-f", "mp4", str(self._tmp)],
+            stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            start_new_session=True)  # a Ctrl-C reaches this process alone, which then stops ffmpeg
+
+    def _finish(self) -> int:
+        """Close ffmpeg's input and wait for it; its exit status."""
+        with contextlib.suppress(OSError):
+            self._ffmpeg.stdin.close()
+        self._errors = self._ffmpeg.stderr.read().decode(errors="replace").strip()
+        return self._ffmpeg.wait()
+
+    def _failure(self) -> OSError:
+        last = self._errors.splitlines()[-1] if self._errors else "no message"
+        return OSError(*write_failure(self._tmp.parent, f"ffmpeg could not encode the video ({last})"),
+                       str(self.path))
+
+    def __exit__(self, kind, error, _) -> None:
+        with self._stack:  # the temporary file is put in place, or removed after an error
+            if kind is not None:
+                if self._ffmpeg is not None and self._ffmpeg.poll() is None:
+                    self._ffmpeg.kill()
+                    self._ffmpeg.wait()
+                raise error  # through the temporary file's context, which then removes it
+            if self._ffmpeg is None:
+                raise ValueError(f"{self.path}: a video needs at least one frame")
+            elif self._finish() != 0:
+                raise self._failure()
+
+
 def write_video(path: Path, frames: list[Path], fps: float) -> None:
-    """Encode PNG frames as H.264 (yuv420p) with the ffmpeg bundled in imageio-ffmpeg."""
+    """Encode PNG frames as an MP4 (``VideoWriter``)."""
     import imageio.v3 as iio
-    import imageio_ffmpeg
 
     if not frames:
         return
-    first = iio.imread(frames[0])[..., :3]
-    h, w = first.shape[:2]
-    pad_h, pad_w = h % 2, w % 2  # yuv420p needs even sides
-    with atomic_path(Path(path)) as tmp:
-        writer = imageio_ffmpeg.write_frames(str(tmp), (w + pad_w, h + pad_h), fps=fps, codec="libx264",
-                                             pix_fmt_out="yuv420p", quality=None, output_params=[*X264, "-f", "mp4"],
-                                             macro_block_size=1, ffmpeg_log_level="quiet")
-        try:
-            writer.send(None)
-            for f in frames:
-                img = iio.imread(f)[..., :3]
-                if pad_h or pad_w:
-                    img = np.pad(img, ((0, pad_h), (0, pad_w), (0, 0)))
-                writer.send(np.ascontiguousarray(img))
-            writer.close()
-        except OSError:
-            # imageio-ffmpeg reports the whole ffmpeg command instead of the cause: find it
-            raise OSError(*write_failure(Path(tmp).parent, "ffmpeg could not encode the video"), str(path)) from None
+    with VideoWriter(path, fps) as video:
+        for f in frames:
+            video.send(iio.imread(f))
 
 
 def count_video_frames(path: Path) -> int:

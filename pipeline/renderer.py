@@ -10,6 +10,7 @@ a killed run resumes after the last whole frame. Used by the render stage and th
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import threading
@@ -26,7 +27,7 @@ from pipeline.config import Config, RenderConfig
 from pipeline.device import warp_device
 from pipeline.executor import run_sharded
 from pipeline.frames import frame_name, spread
-from pipeline.media import contact_sheet, label, write_png, write_video
+from pipeline.media import VideoWriter, contact_sheet, label, write_png, write_video
 from pipeline.methods import (
     NAMES,
     SPHERE_FILTERS,
@@ -138,8 +139,9 @@ class SequenceRenderer:
                                             camera_motion(frame.depth, camera, prev, nxt, self.launch, self.on_device)))
 
     def write(self, frame: int, camera: Camera, fps: float, shaded: dict[str, RenderedFrame],
-              timings: Timings) -> None:
-        """The EXR, preview and comparison of one frame (on the writer thread)."""
+              timings: Timings, videos: list[VideoWriter]) -> None:
+        """The EXR, preview and comparison of one frame (on the writer thread), and the frame of each
+        video being encoded as the frames come (``videos``: ``video_names``' order, or none)."""
         p = self.config.render
         main = shaded[p.method]
         exr, preview, *compare = (self.folder / o for o in self.outputs(frame))
@@ -147,10 +149,15 @@ class SequenceRenderer:
             main.write(exr, p, camera, fps, frame)
         main_tile = tonemap(main.beauty, p.exposure)  # the preview, and the main method's comparison tile
         write_png(preview, main_tile)
+        if videos:
+            videos[0].send(main_tile)
         if compare:
             tiles = [label(main_tile if m == p.method else tonemap(shaded[m].beauty, p.exposure), NAMES[m])
                      for m in COMPARED]
-            write_png(compare[0], np.concatenate(tiles, axis=1))
+            row = np.concatenate(tiles, axis=1)
+            write_png(compare[0], row)
+            if videos:
+                videos[1].send(row)
 
     def render(self, frames: list[int], load: Callable[[int], tuple[np.ndarray, np.ndarray | None]], radius: float,
                camera_at: Callable[[int], Camera], fps: float | None = None, subset: list[int] | None = None,
@@ -166,7 +173,13 @@ class SequenceRenderer:
         no_fluid: list[int] = []
         no_velocity = False
         write_timings = Timings()
-        with BackgroundWriter() as writer:
+        # a run that renders every frame in order encodes its videos as it goes (on the writer thread
+        # and ffmpeg's, in the time the frames leave free); a resumed run or a shard encodes the PNGs
+        encode = videos and subset is None and bool(frames) and not any(self.done(f) for f in frames)
+        with contextlib.ExitStack() as stack:
+            streams = [stack.enter_context(VideoWriter(self.folder / v, p.video_fps))
+                       for v in video_names(self.name, p)] if encode else []
+            writer = stack.enter_context(BackgroundWriter())  # drained before the videos close
             for i in tqdm(range(len(frames)) if subset is None else subset, desc=f"render {self.name}", unit="frame"):
                 frame = frames[i]
                 if self.done(frame):
@@ -185,12 +198,12 @@ class SequenceRenderer:
                     prev = (camera_at(i - 1), frame - frames[i - 1]) if i > 0 else None
                     nxt = (camera_at(i + 1), frames[i + 1] - frame) if i + 1 < len(frames) else None
                     self.motion(main, positions, velocities, radius, camera, fps, prev, nxt)
-                writer.submit(self.write, frame, camera, fps, shaded, write_timings)
+                writer.submit(self.write, frame, camera, fps, shaded, write_timings, streams)
         self.timings.merge(write_timings)
         if no_fluid:
             log.warning("render %s: the camera sees no fluid in %d frames (first: %d); they show the background "
                         "only", self.name, len(no_fluid), no_fluid[0])
-        return write_videos(self.folder, self.name, frames, p) if videos else []
+        return write_videos(self.folder, self.name, frames, p, encoded=encode) if videos else []
 
     def close(self) -> None:
         """Release the rasteriser and device buffers."""
@@ -207,18 +220,23 @@ class SequenceRenderer:
         self.close()
 
 
-def write_videos(folder: Path, name: str, frames: list[int], p: RenderConfig) -> list[str]:
-    """The preview video (and the comparison video and sheet) of all frames; the sequence's files."""
-    files = [f"frames/{frame_name(f, 'exr')}" for f in frames]
-    video = f"{name}_{p.method}.mp4"
-    write_video(folder / video, [folder / f"preview/{frame_name(f, 'png')}" for f in frames], p.video_fps)
-    files.append(video)
+def video_names(name: str, p: RenderConfig) -> list[str]:
+    """The sequence's videos: the preview's, and with ``render.comparison`` the comparison's."""
+    return [f"{name}_{p.method}.mp4", *([f"{name}_comparison.mp4"] if p.comparison else [])]
+
+
+def write_videos(folder: Path, name: str, frames: list[int], p: RenderConfig, encoded: bool = False) -> list[str]:
+    """The preview video (and the comparison video and sheet) of all frames, the videos from the PNGs
+    unless they were ``encoded`` while rendering; the sequence's files."""
+    stills = ["preview", "compare"]
+    if not encoded:
+        for video, kind in zip(video_names(name, p), stills, strict=False):
+            write_video(folder / video, [folder / f"{kind}/{frame_name(f, 'png')}" for f in frames], p.video_fps)
     if p.comparison:
-        compares = [folder / f"compare/{frame_name(f, 'png')}" for f in frames]
-        write_video(folder / f"{name}_comparison.mp4", compares, p.video_fps)
-        contact_sheet(folder / f"{name}_comparison_sheet.png", spread(compares, 4))
-        files += [f"{name}_comparison.mp4", f"{name}_comparison_sheet.png"]
-    return files
+        contact_sheet(folder / f"{name}_comparison_sheet.png",
+                      spread([folder / f"compare/{frame_name(f, 'png')}" for f in frames], 4))
+    sheet = [f"{name}_comparison_sheet.png"] if p.comparison else []
+    return [f"frames/{frame_name(f, 'exr')}" for f in frames] + video_names(name, p) + sheet
 
 
 def render_sequence(folder: Path, name: str, around: Surroundings, config: Config, device: str, refiner,

@@ -16,6 +16,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from pipeline import cache
 from pipeline.camera import camera_file_size, sequence_cameras, write_camera_file
 from pipeline.config import Config, ConfigError
@@ -102,10 +104,12 @@ def main(opts: StageOptions, req: Request) -> None:
                                                        "up": req.up}, {}, run.device, MODULE)
     if sim.begin(force=run.force):
         extra = import_sequence(sim.dir, name, list(seq.paths), radius, req.fps, req.up, req.pattern,
-                                support=anisotropy_support(radius, loaded.config.dataset.aniso_kernel_radius))
+                                support=anisotropy_support(radius, loaded.config.dataset.aniso_kernel_radius),
+                                stray=STRAY_SHARE)
         sim.finish(extra.pop("files"), extra.pop("timings"), **extra)
     indices = list(range(1, len(seq) + 1))
-    lo, hi = sequence_bounds(sim.dir, len(seq), stray=STRAY_SHARE)
+    box = sim.manifest().get("bounds")  # taken as the files were imported
+    lo, hi = np.asarray(box, float) if box else sequence_bounds(sim.dir, len(seq), stray=STRAY_SHARE)
     if not 1e-4 < radius / max(float((hi - lo).max()), 1e-12) < 0.2:
         log.warning("render %s: the radius %.4g does not fit the sequence's extent %.4g; check --radius and the "
                     "units", name, radius, float((hi - lo).max()))

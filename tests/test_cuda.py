@@ -38,6 +38,23 @@ def _busy_gpu(loops: int = 20_000_000) -> None:
     wp.launch(hold_the_gpu, 1, [loops, wp.zeros(1, dtype=float, device="cuda:0")], device="cuda:0")
 
 
+class _EmptyVideo:
+    """``pipeline.media.VideoWriter`` without ffmpeg: an empty file for each video."""
+
+    def __init__(self, path, fps):
+        self.path = Path(path)
+
+    def __enter__(self):
+        return self
+
+    def send(self, image):
+        pass
+
+    def __exit__(self, kind, *exc):
+        if kind is None:
+            self.path.write_bytes(b"")
+
+
 def _hold_every_launch(monkeypatch) -> None:
     """Hold the GPU for a few milliseconds before every Warp launch through a ``Launcher`` on CUDA."""
     from pipeline.parallel import Launcher
@@ -183,6 +200,7 @@ def test_render_stage_on_the_gpu_writes_what_the_cpu_does(tmp_path, monkeypatch,
     from tests.conftest import write_config
 
     monkeypatch.setattr("pipeline.renderer.write_video", lambda path, frames, fps: Path(path).write_bytes(b""))
+    monkeypatch.setattr("pipeline.renderer.VideoWriter", _EmptyVideo)
     if held:
         _hold_every_launch(monkeypatch)
 

@@ -66,6 +66,8 @@ def test_disk_full_while_writing_an_exr_is_one_line(tiny_dam, capsys, monkeypatc
     assert line.startswith("render: error: No space left on device") and ".exr" in line
     (entry,) = (tiny_dam.parent / "data" / "render").iterdir()
     assert not (entry / "manifest.json").exists()
+    data = tiny_dam.parent / "data"
+    assert not [p for p in data.rglob("*") if ".mp4" in p.name], "the video being encoded goes with the error"
 
 
 def test_a_duplicated_yaml_key_is_rejected(tmp_path, capsys):
@@ -225,24 +227,25 @@ def test_a_real_full_disk_at_every_point_of_a_render_is_one_line(small_disk, cap
                 assert "No space left on device" in line, line
                 failures.add(Path(line.split("(")[-1].split(")")[0]).suffix)
     assert {"estimate", ".exr", ".png"} <= failures, failures
-    # the videos take a few kB: fill the disk right before the real ffmpeg writes them
-    from pipeline import renderer
+    # the videos take a few kB: fill the disk right before the real ffmpeg finishes them (they are
+    # encoded as the frames come; x264 holds a few frames back until the end)
+    from pipeline.media import VideoWriter
 
-    real_video = renderer.write_video
+    real_exit = VideoWriter.__exit__
 
-    def video_on_a_full_disk(*args, **kwargs):
+    def video_on_a_full_disk(self, *exc):
         fill.unlink(missing_ok=True)
         fill.write_bytes(b"0" * shutil.disk_usage(small_disk).free)
-        return real_video(*args, **kwargs)
+        return real_exit(self, *exc)
 
     shutil.rmtree(small_disk / "data" / "render", ignore_errors=True)
     fill.unlink(missing_ok=True)
-    renderer.write_video = video_on_a_full_disk
+    VideoWriter.__exit__ = video_on_a_full_disk
     try:
         capsys.readouterr()
         assert cli.main(["render", "--config", str(config)]) == 1
     finally:
-        renderer.write_video = real_video
+        VideoWriter.__exit__ = real_exit
     line = _one_line(capsys.readouterr().err)
     assert "No space left on device" in line and line.split("(")[-1].startswith(str(small_disk)) and ".mp4)" in line
     fill.unlink()

@@ -11,7 +11,7 @@ import yaml
 
 from pipeline.config import TrainConfig
 from pipeline.exr import read_exr, read_exr_header, stack
-from pipeline.media import count_video_frames
+from pipeline.media import count_video_frames, write_video
 from pipeline.methods import channel_names
 from pipeline.model.trainer import Refiner
 from stages import cli
@@ -65,6 +65,10 @@ def test_render_writes_named_exr_sequence_video_and_comparison(tmp_path):
     assert count_video_frames(entry / "dam_break_refined.mp4") == 2
     assert count_video_frames(entry / "dam_break_comparison.mp4") == 2
     assert len(list((entry / "preview").glob("*.png"))) == 2
+    # encoded while rendering, the videos are the ones a resumed run makes from the PNGs, byte for byte
+    for video, stills in (("dam_break_refined.mp4", "preview"), ("dam_break_comparison.mp4", "compare")):
+        write_video(tmp_path / video, sorted((entry / stills).glob("*.png")), 30.0)
+        assert (tmp_path / video).read_bytes() == (entry / video).read_bytes()
     assert (entry / "dam_break_comparison_sheet.png").exists()
     from PIL import Image
 

@@ -268,3 +268,25 @@ def test_the_automatic_cameras_box_is_the_fluids_bulk_not_its_stray_droplets(tmp
     np.testing.assert_allclose(hi, 0.48 + 0.1, atol=1e-6)  # both frames' blocks, no droplet
     lo, hi = sequence_bounds(tmp_path, 2)
     assert hi[0] == 60.0 and lo[0] == -18.0 and hi[1] == 80.0  # every particle
+
+
+def test_an_import_takes_the_sequences_box_as_it_reads_resumed_or_not(tmp_path):
+    """The box the automatic camera frames comes from the files as they are imported, equal to
+    ``sequence_bounds`` over the cached copies, also when a stopped import left some copies."""
+    from pipeline.frames import frame_name, sequence_bounds
+    from pipeline.sim.runner import import_sequence
+    from stages.sequence import STRAY_SHARE
+
+    rng = np.random.default_rng(1)
+    files = []
+    for i in range(1, 4):
+        x = rng.normal(0.1 * i, 0.2, (3000, 3)).astype(np.float32)
+        files.append(tmp_path / f"f_{i}.ply")
+        write_particles(files[-1], ParticleFrame(x, None))
+    cache = tmp_path / "cache"
+    for stopped in (False, True):
+        if stopped:  # the second frame's copy is gone, the others kept
+            (cache / frame_name(2)).unlink()
+        extra = import_sequence(cache, "f", files, 0.01, 30.0, support=0.04, stray=STRAY_SHARE)
+        lo, hi = sequence_bounds(cache, 3, stray=STRAY_SHARE)
+        np.testing.assert_array_equal(extra["bounds"], [lo, hi])

@@ -15,7 +15,16 @@ from tqdm import tqdm
 
 from pipeline import resources
 from pipeline.config import SceneConfig, SimulateConfig
-from pipeline.frames import SequenceInfo, completed_frames, frame_name, load_frame, save_frame, write_sequence_info
+from pipeline.frames import (
+    SequenceInfo,
+    completed_frames,
+    frame_bounds,
+    frame_name,
+    load_frame,
+    save_frame,
+    union_bounds,
+    write_sequence_info,
+)
 from pipeline.particles import read_particles
 from pipeline.particles.sequence import find_sequence
 from pipeline.sph import IMPORT_PADDING_RADII, NEIGHBOUR_PAIRS_LIMIT, WATER_DENSITY, neighbour_count
@@ -35,21 +44,27 @@ def source_files(scene: SceneConfig) -> list[Path]:
 
 
 def import_sequence(folder: Path, name: str, files: list[Path], radius: float, fps: float, up: str = "y",
-                    source: str = "", *, support: float) -> dict:
+                    source: str = "", *, support: float, stray: float | None = None) -> dict:
     """Copy particle files (in this order) into the folder as frames 1, 2, ...; returns the
     manifest's extra fields. ``up="z"`` turns Z-up data to the pipeline's Y-up. ``support``: the
-    anisotropy's neighbour radius; a frame whose neighbour search would not finish is refused."""
+    anisotropy's neighbour radius; a frame whose neighbour search would not finish is refused.
+    With ``stray``, the extra fields hold the sequence's ``sequence_bounds`` (``bounds``: lo, hi)
+    taken from the files as they are read, so nothing reads the copies again for them."""
     folder = Path(folder)
-    timings, n_max = Timings(), 0
+    timings, n_max, boxes = Timings(), 0, []
     # a frame's copy is written while the next is read (a million particles: 94 -> 75 ms a frame)
     with BackgroundWriter() as writer:
         for i, f in enumerate(tqdm(files, desc=f"import {name}", unit="frame"), start=1):
             target = folder / frame_name(i)
-            if target.exists():
+            if target.exists():  # copied by a run that was stopped: only its bounds are wanted
+                if stray is not None:
+                    boxes.append(frame_bounds(load_frame(target)[0], stray))
                 continue
             with timings("read"):
                 frame = read_particles(f, up=up)
             check_crowding(f, frame.positions, radius, support)
+            if stray is not None:
+                boxes.append(frame_bounds(frame.positions, stray))
             writer.submit(save_frame, target, frame.positions, frame.velocities)
             n_max = max(n_max, len(frame.positions))
     first = read_particles(files[0], up=up).positions
@@ -58,8 +73,11 @@ def import_sequence(folder: Path, name: str, files: list[Path], radius: float, f
                                              tuple(float(v - pad) for v in first.min(0)),
                                              tuple(float(v + pad) for v in first.max(0)), source))
     log.info("import %s: %d frames from %s", name, len(files), source)
-    return {"files": [frame_name(i) for i in range(1, len(files) + 1)], "timings": timings.as_dict(),
-            "particles_max": n_max}
+    extra = {"files": [frame_name(i) for i in range(1, len(files) + 1)], "timings": timings.as_dict(),
+             "particles_max": n_max}
+    if stray is not None:
+        extra["bounds"] = [v.tolist() for v in union_bounds(boxes)]
+    return extra
 
 
 def check_crowding(path: Path, positions: np.ndarray, radius: float, support: float) -> None:
