@@ -60,8 +60,8 @@ def _start_pool() -> None:
 _start_pool()
 os.register_at_fork(before=_stop_pool, after_in_parent=_start_pool, after_in_child=_start_pool)
 
-COMPRESSIONS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION, "piz": OpenEXR.PIZ_COMPRESSION,
-                "dwaa": OpenEXR.DWAA_COMPRESSION, "dwab": OpenEXR.DWAB_COMPRESSION}
+COMPRESSIONS = {"none": OpenEXR.NO_COMPRESSION, "zip": OpenEXR.ZIP_COMPRESSION, "zstd": OpenEXR.ZSTD_COMPRESSION,
+                "piz": OpenEXR.PIZ_COMPRESSION, "dwaa": OpenEXR.DWAA_COMPRESSION, "dwab": OpenEXR.DWAB_COMPRESSION}
 """Compression names of ``RenderConfig.exr_compression`` and their OpenEXR codes."""
 
 FLIP_Z = np.diag([1.0, 1.0, -1.0, 1.0])

@@ -41,7 +41,7 @@ def test_missing_channel_is_named(tmp_path):
 def test_half_channels_and_lossless_compressions(tmp_path):
     rng = np.random.default_rng(1)
     channels = {n: rng.normal(size=(20, 30)).astype(np.float32) for n in ("L.C.R", "L.C.A", "L.D.Z", "L.N.Y")}
-    for compression in ("zip", "piz", "none"):
+    for compression in ("zip", "zstd", "piz", "none"):
         write_exr(tmp_path / f"{compression}.exr", channels, half=("L.C.R", "L.C.A"), compression=compression)
         back = read_exr(tmp_path / f"{compression}.exr")
         for n in ("L.D.Z", "L.N.Y"):
@@ -130,7 +130,7 @@ def test_openexr_threads_write_the_same_bytes(tmp_path):
     before = OpenEXR.global_thread_count()
     assert before == EXR_THREADS >= 1
     try:
-        for compression in ("zip", "piz", "dwaa"):
+        for compression in ("zip", "zstd", "piz", "dwaa"):
             files = []
             for threads in (0, 3):
                 OpenEXR.set_global_thread_count(threads)
