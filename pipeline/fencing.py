@@ -98,14 +98,16 @@ def _fence(held: tuple[Path, _Open] | None, target: Path) -> None:
 
 
 def _journal(held: tuple[Path, _Open] | None, target: Path) -> None:
-    """Append a finished file's size and hash (``target``, a resolved path) to the journal of the
-    open entry that holds it, so a resumed run can check the files of an unfinished entry as the
-    manifest checks a finished one."""
+    """Append a finished file's size, modification time and hash (``target``, a resolved path) to
+    the journal of the open entry that holds it, so a resumed run can check the files of an
+    unfinished entry as the manifest checks a finished one, and the manifest takes the hash from
+    here rather than reading every file again."""
     if held is None:
         return
     folder, state = held
-    line = json.dumps({"file": str(target.relative_to(folder)), "size": target.stat().st_size,
-                       "blake2b": file_hash(target)})
+    stat = target.stat()
+    line = json.dumps({"file": str(target.relative_to(folder)), "size": stat.st_size,
+                       "mtime_ns": stat.st_mtime_ns, "blake2b": file_hash(target)})
     if state.owner:
         with state.lock, open(folder / state.journal, "a") as fh:
             fh.write(line + "\n")

@@ -187,6 +187,27 @@ def test_files_a_worker_process_writes_into_an_open_entry_are_checked_on_resume(
     assert not list(again.dir.glob("journal*.jsonl"))
 
 
+def test_the_manifest_takes_the_journals_hash_unless_the_file_changed_since(tmp_path, monkeypatch):
+    """A file journaled as it was written is not read again for the manifest while its size and time
+    are the journaled ones; one written to since (here: the same size, a later time) is hashed anew.
+    Either way the manifest holds the file's true hash."""
+    entry = cache.entry(tmp_path, "dataset", "scene", {"a": 1}, {}, "cpu", module="pipeline.cache")
+    assert entry.begin()
+    for name in ("kept.bin", "edited.bin"):
+        with cache.atomic_path(entry.path(name)) as tmp:
+            tmp.write_bytes(name.encode() * 1000)
+    edited = entry.path("edited.bin")
+    edited.write_bytes(b"x" * edited.stat().st_size)
+    os.utime(edited, ns=(edited.stat().st_atime_ns, edited.stat().st_mtime_ns + 10**9))
+    hashed = []
+    real_hash = cache.file_hash
+    monkeypatch.setattr(cache, "file_hash", lambda path: hashed.append(Path(path).name) or real_hash(path))
+    entry.finish(["kept.bin", "edited.bin"])
+    assert hashed == ["edited.bin"]
+    checks = json.loads(entry.path(cache.MANIFEST).read_text())["checks"]
+    assert {n: c["blake2b"] for n, c in checks.items()} == {n: real_hash(entry.path(n)) for n in checks}
+
+
 KILLED_MID_WRITE = """
 import os, sys
 from pathlib import Path
