@@ -75,6 +75,27 @@ def _stage_keys(code: Path) -> dict[str, str]:
     return _json.loads(out)
 
 
+def test_the_import_closure_reads_each_source_once(tmp_path, monkeypatch):
+    """Each source's imports are kept by the hash of its text: a second process (here, the closure's
+    cache cleared) parses nothing and finds the same modules; where the file cannot be written or is
+    garbage, the sources are parsed as before."""
+    import ast
+
+    monkeypatch.setattr(cache, "IMPORTS_CACHE", tmp_path / "imports.json")
+    cache.import_closure.cache_clear()
+    first = cache.import_closure("stages.render")
+    assert "pipeline.model.inference" in first and (tmp_path / "imports.json").exists()
+    cache.import_closure.cache_clear()
+    real_parse = ast.parse
+    monkeypatch.setattr(ast, "parse", lambda *a, **k: pytest.fail("parsed a source the cache holds"))
+    assert cache.import_closure("stages.render") == first
+    monkeypatch.setattr(ast, "parse", real_parse)
+    (tmp_path / "imports.json").write_text("{not json")
+    cache.import_closure.cache_clear()
+    assert cache.import_closure("stages.render") == first
+    cache.import_closure.cache_clear()
+
+
 def test_a_stage_key_follows_every_module_it_imports(tmp_path):
     """Keys come from the stage's import closure, not a hand-kept list: editing a module a stage
     imports only indirectly changes that stage's key (and its dependents'), and editing a module
