@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import fencing
-from pipeline.fencing import TMP_MARK, atomic_path, file_hash
+from pipeline.fencing import HASH, TMP_MARK, atomic_path, file_hash
 
 log = logging.getLogger("deep_ssfr")
 MANIFEST = "manifest.json"
@@ -247,7 +247,7 @@ class CacheEntry:
 
     def is_complete(self) -> bool:
         """True when the stage finished (its manifest exists) and every output it recorded is still
-        whole: the recorded size always, the recorded BLAKE2 hash too with ``--verify``. A bad file
+        whole: the recorded size always, the recorded hash too with ``--verify``. A bad file
         is deleted with the manifest and named in the log, so the stage's resume redoes just it."""
         if not (self.dir / MANIFEST).exists():
             return False
@@ -339,7 +339,7 @@ class CacheEntry:
             touched = "mtime_ns" in want and stat.st_mtime_ns != want["mtime_ns"]  # written to since: hash it
             if stat.st_size != want["size"]:
                 bad.append((name, f"{stat.st_size} bytes, {want['size']} recorded"))
-            elif (VERIFY_HASHES or touched) and file_hash(path) != want["blake2b"]:
+            elif (VERIFY_HASHES or touched) and file_hash(path) != want.get(HASH):
                 bad.append((name, "content differs from the recorded hash"))
         for name, why in bad:
             log.warning("%s %s: %s is damaged (%s); redoing it", self.stage, self.name, self.dir / name, why)
@@ -394,13 +394,13 @@ def entry(root: Path, stage: str, name: str, config: Any, inputs: dict[str, str]
 
 def _check_of(path: Path, journaled: dict | None = None) -> dict[str, Any]:
     """What a manifest records of an output: size and modification time (checked on every reuse; a
-    changed time has the file hashed) and its BLAKE2 hash, the one its ``journaled`` record took as
+    changed time has the file hashed) and its hash, the one its ``journaled`` record took as
     it was written when the file still has that record's size and time (a 1M-particle frame's copy
     is 24 MB: 30 ms of hashing saved a frame)."""
     stat = path.stat()
     check = {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
-    same = journaled is not None and all(journaled.get(k) == v for k, v in check.items())
-    return {**check, "blake2b": journaled["blake2b"] if same else file_hash(path)}
+    same = journaled is not None and HASH in journaled and all(journaled.get(k) == v for k, v in check.items())
+    return {**check, HASH: journaled[HASH] if same else file_hash(path)}
 
 
 def publish(source: Path, target: Path) -> None:

@@ -226,7 +226,7 @@ def test_the_manifest_takes_the_journals_hash_unless_the_file_changed_since(tmp_
     entry.finish(["kept.bin", "edited.bin"])
     assert hashed == ["edited.bin"]
     checks = json.loads(entry.path(cache.MANIFEST).read_text())["checks"]
-    assert {n: c["blake2b"] for n, c in checks.items()} == {n: real_hash(entry.path(n)) for n in checks}
+    assert {n: c[cache.HASH] for n, c in checks.items()} == {n: real_hash(entry.path(n)) for n in checks}
 
 
 KILLED_MID_WRITE = """

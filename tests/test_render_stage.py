@@ -33,10 +33,10 @@ def _config(tmp_path, weights: str, **render_opts) -> str:
 
 def _record(entry, name: str) -> None:
     """Update a finished entry's manifest for a file a test replaced on purpose."""
-    from pipeline.cache import file_hash
+    from pipeline.cache import HASH, file_hash
 
     manifest = json.loads((entry / "manifest.json").read_text())
-    manifest["checks"][name] = {"size": (entry / name).stat().st_size, "blake2b": file_hash(entry / name)}
+    manifest["checks"][name] = {"size": (entry / name).stat().st_size, HASH: file_hash(entry / name)}
     (entry / "manifest.json").write_text(json.dumps(manifest))
 
 
