@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 
 import numpy as np
 import pytest
@@ -514,3 +515,40 @@ def test_half_channels_are_the_bits_numpy_would_write():
         else:
             assert fast[name].dtype == np.float32
             np.testing.assert_array_equal(fast[name], plain[name])
+
+
+def test_frames_are_read_ahead_and_a_damaged_one_fails_in_its_turn(tmp_path):
+    """The renderer reads each frame's particles while the frame before renders. A frame that
+    cannot be read must still stop the run when its turn comes: the frames before it written, none
+    after it read or written; a resumed run reads only the frames it has left."""
+    from pipeline.cache import CacheError
+    from pipeline.frames import frame_name
+
+    p = RenderConfig(width=SIZE, height=SIZE, method="bilateral", comparison=False, background="none")
+    config = dataclasses.replace(Config(scenes=()), render=p)
+    read, broken, second_read = [], {3}, threading.Event()
+
+    def load(frame: int):
+        read.append(frame)
+        second_read.set() if frame == 2 else None
+        if frame in broken:
+            raise CacheError(f"corrupt cache file {frame_name(frame)}")
+        return _blob((0.5, 0.3 + 0.01 * frame, 0.5)), None
+
+    around = Surroundings((0.0, 0.0, 0.0), (1.0, 0.6, 1.0), walls=False)
+    with SequenceRenderer(tmp_path, "drop", around, config, "cpu") as renderer:
+        shade = renderer.shade
+
+        def shade_once_frame_2_is_read(*args):  # the first frame renders only once the next is read
+            assert second_read.wait(timeout=30), "frame 2 was not read while frame 1 rendered"
+            return shade(*args)
+
+        renderer.shade = shade_once_frame_2_is_read
+        with pytest.raises(CacheError, match="frame_0003"):
+            renderer.render([1, 2, 3, 4], load, RADIUS, lambda i: _camera(), fps=FPS, videos=False)
+        assert read == [1, 2, 3]
+        assert [renderer.done(f) for f in (1, 2, 3, 4)] == [True, True, False, False]
+        broken.clear()
+        read.clear()
+        renderer.render([1, 2, 3, 4], load, RADIUS, lambda i: _camera(), fps=FPS, videos=False)
+        assert read == [3, 4] and all(renderer.done(f) for f in (1, 2, 3, 4))
