@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import logging
-import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -74,8 +73,12 @@ class SequenceRenderer:
         self.on_device = not self.launch.cpu if on_device is None else on_device
         self.shader = Shader(wdev, environment=load_environment(p.environment) if p.environment else None)
         self.around, self.background = around, None  # the rasteriser, made when the first frame needs it
-        if p.background == "scene":  # pyrender's import (about a second) runs beside the first frame's work
-            threading.Thread(target=importlib.import_module, args=("pyrender",), daemon=True).start()
+        # pyrender rasterises on a thread of its own, where its GL context lives: its import (about a
+        # second) and each new camera's background (0.2-0.3 s at 1080p) run beside the frame's work
+        self._rasteriser = None
+        if p.background == "scene":
+            self._rasteriser = ThreadPoolExecutor(1, thread_name_prefix="background")
+            self._rasteriser.submit(importlib.import_module, "pyrender")
         self._backdrop: tuple | None = None  # the last camera's background and its depth
         self._seen: tuple | None = None  # the last frame's camera and the particles seen in front
         self.timings = Timings()
@@ -92,6 +95,9 @@ class SequenceRenderer:
     def shade(self, positions: np.ndarray, radius: float, camera: Camera) -> dict[str, RenderedFrame]:
         """Every method's rendered passes of one frame (the main method timed)."""
         p = self.config.render
+        view = (camera.view.tobytes(), camera.fov_y_deg, camera.width, camera.height)
+        stale = self._backdrop is None or self._backdrop[0] != view  # a still camera's is made once
+        rasterised = self._rasteriser.submit(self._rasterise, camera) if stale and self._rasteriser else None
         sources, frame_cache = {}, {SPHERE_FILTERS: sphere_filters_of(self.methods)}
         for method in self.methods:
             t = self.timings if method == p.method else Timings()
@@ -99,15 +105,12 @@ class SequenceRenderer:
                                                 self.launch, self.refiner, p.normal_threshold, t, frame_cache,
                                                 self.metaball, self.on_device))
         with self.timings("background"):
-            view = (camera.view.tobytes(), camera.fov_y_deg, camera.width, camera.height)
-            if self._backdrop is None or self._backdrop[0] != view:  # a still camera's is made once
-                h, w = p.height, p.width
-                if p.background == "scene":
-                    if self.background is None:
-                        self.background = BackgroundRenderer(self.around, p, w, h)
-                    bg, bg_depth = self.background.render(camera)
+            if stale:
+                if rasterised is not None:
+                    bg, bg_depth = rasterised.result()
                 else:  # nothing behind the fluid: it refracts the environment alone
-                    bg, bg_depth = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
+                    shape = (p.height, p.width)
+                    bg, bg_depth = np.zeros((*shape, 3), np.float32), np.zeros(shape, np.float32)
                 self._backdrop = (view, self.shader.fill_sky(bg, bg_depth, camera, p, on_device=self.on_device),
                                   bg_depth)
             bg, bg_depth = self._backdrop[1:]
@@ -116,6 +119,13 @@ class SequenceRenderer:
         seen = frame_cache.get("seen_kernels")
         self._seen = (seen[0], seen[2]) if seen is not None else None
         return shaded
+
+    def _rasterise(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """pyrender's background (linear colour, depth) from ``camera``, on the rasteriser's thread."""
+        if self.background is None:
+            p = self.config.render
+            self.background = BackgroundRenderer(self.around, p, p.width, p.height)
+        return self.background.render(camera)
 
     def motion(self, frame: RenderedFrame, positions: np.ndarray, velocities: np.ndarray | None, radius: float,
                camera: Camera, fps: float, prev: tuple[Camera, int] | None, nxt: tuple[Camera, int] | None) -> None:
@@ -214,9 +224,10 @@ class SequenceRenderer:
         return write_videos(self.folder, self.name, frames, p, encoded=encode) if videos else []
 
     def close(self) -> None:
-        """Release the rasteriser and device buffers."""
-        if self.background is not None:
-            self.background.close()
+        """Release the rasteriser (on its thread, where its GL context lives) and device buffers."""
+        if self._rasteriser is not None:  # after whatever it has begun
+            self._rasteriser.submit(lambda: self.background and self.background.close()).result()
+            self._rasteriser.shutdown()
         self.ss.close()
         self.launch.close()
         self.shader.close()

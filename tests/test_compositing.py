@@ -552,3 +552,42 @@ def test_frames_are_read_ahead_and_a_damaged_one_fails_in_its_turn(tmp_path):
         read.clear()
         renderer.render([1, 2, 3, 4], load, RADIUS, lambda i: _camera(), fps=FPS, videos=False)
         assert read == [3, 4] and all(renderer.done(f) for f in (1, 2, 3, 4))
+
+
+def test_a_moving_cameras_background_is_rasterised_beside_the_frames_work(tmp_path, monkeypatch):
+    """pyrender draws each new camera's background on a thread of its own while the frame's
+    normals are computed: the normals here wait until that drawing has begun (in the same thread
+    they would wait for ever), and each frame shows the background of its own camera."""
+    import pipeline.renderer as renderer_module
+    from pipeline.shading.background import BackgroundRenderer
+
+    drawing, threads = threading.Event(), set()
+    draw = BackgroundRenderer.render
+
+    def draw_and_tell(self, camera):
+        threads.add(threading.current_thread().name)
+        drawing.set()
+        return draw(self, camera)
+
+    source = renderer_module.normal_source
+
+    def source_once_drawing(*args, **kwargs):
+        assert drawing.wait(timeout=30), "the background was not drawn beside the frame's work"
+        drawing.clear()
+        return source(*args, **kwargs)
+
+    orbit = [_camera(), Camera(look_at((0.9, 0.6, 2.0), (0.5, 0.25, 0.5)), 40.0, SIZE, SIZE)]
+    here = BackgroundRenderer(Surroundings((0.0, 0.0, 0.0), (1.0, 0.6, 1.0), walls=False),
+                              RenderConfig(width=SIZE, height=SIZE), SIZE, SIZE)
+    want = [here.render(camera)[1] for camera in orbit]  # drawn on this thread
+    here.close()
+    monkeypatch.setattr(BackgroundRenderer, "render", draw_and_tell)
+    monkeypatch.setattr(renderer_module, "normal_source", source_once_drawing)
+    files, _ = _render(tmp_path, frames=(1, 2), cameras=orbit)
+    assert threads and threading.main_thread().name not in threads
+    assert not np.array_equal(want[0], want[1])
+    for f, depth in zip(files[:2], want, strict=True):
+        ch = read_exr(tmp_path / f)
+        floor = (ch[f"{L}Fluid.A"] == 0) & (depth > 0)
+        assert floor.mean() > 0.3
+        np.testing.assert_array_equal(ch[f"{L}Depth.Z"][floor], depth[floor])
