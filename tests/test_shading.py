@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.camera import Camera, look_at
 from pipeline.config import RenderConfig
-from pipeline.shading import Shader, fresnel_f0, load_environment
+from pipeline.shading import Shader, fresnel_f0, load_environment, srgb_to_linear
 
 SIZE = 33  # odd: the centre pixel looks exactly down -Z
 C = SIZE // 2
@@ -327,3 +327,16 @@ def test_tonemap_table_is_within_one_code_of_the_curve():
         assert np.unique(got).size == 256  # every code reached: no bucket swallows a range
     odd = np.array([[[-1.0, np.nan, -0.0], [np.inf, -np.inf, 1e30]]], np.float32)
     np.testing.assert_array_equal(tonemap(odd), [[[0, 0, 0], [255, 0, 255]]])
+
+
+def test_srgb_codes_decode_to_the_standard_curve():
+    """The 256 8-bit codes (looked up) give the sRGB curve: linear below 0.04045, the 2.4 power
+    above, 0 and 1 at the ends, and any array of codes decodes as the same values in float."""
+    codes = np.arange(256, dtype=np.uint8)
+    x = codes / 255.0
+    curve = np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+    table = srgb_to_linear(codes)
+    assert table.dtype == np.float32 and table[0] == 0.0 and table[255] == 1.0
+    np.testing.assert_allclose(table, curve, rtol=1e-6)
+    image = np.random.default_rng(0).integers(0, 256, (5, 7, 3)).astype(np.uint8)
+    np.testing.assert_array_equal(srgb_to_linear(image), srgb_to_linear(image.astype(np.float64)))
