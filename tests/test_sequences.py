@@ -12,7 +12,7 @@ import meshio
 import numpy as np
 import pytest
 
-from pipeline.particles import ParticleFormatError, ParticleFrame, write_particles
+from pipeline.particles import ParticleFormatError, ParticleFrame, read_particles, write_particles
 from pipeline.particles.sequence import ParticleSequenceError, find_sequence, parse_frame_range
 
 NUMBERS = (8, 9, 10, 11)  # unpadded: by name f_10 and f_11 would sort before f_8
@@ -273,8 +273,9 @@ def test_the_automatic_cameras_box_is_the_fluids_bulk_not_its_stray_droplets(tmp
 def test_an_import_takes_the_sequences_box_as_it_reads_resumed_or_not(tmp_path):
     """The box the automatic camera frames comes from the files as they are imported, equal to
     ``sequence_bounds`` over the cached copies, also when a stopped import left some copies."""
-    from pipeline.frames import frame_name, sequence_bounds
+    from pipeline.frames import frame_name, read_sequence_info, sequence_bounds
     from pipeline.sim.runner import import_sequence
+    from pipeline.sph import IMPORT_PADDING_RADII
     from stages.sequence import STRAY_SHARE
 
     rng = np.random.default_rng(1)
@@ -290,3 +291,8 @@ def test_an_import_takes_the_sequences_box_as_it_reads_resumed_or_not(tmp_path):
         extra = import_sequence(cache, "f", files, 0.01, 30.0, support=0.04, stray=STRAY_SHARE)
         lo, hi = sequence_bounds(cache, 3, stray=STRAY_SHARE)
         np.testing.assert_array_equal(extra["bounds"], [lo, hi])
+        # the domain: the first frame's box grown by the import's padding, read once
+        info, first = read_sequence_info(cache), read_particles(files[0]).positions
+        pad = IMPORT_PADDING_RADII * 0.01
+        assert info.domain_lo == tuple(float(v - pad) for v in first.min(0))
+        assert info.domain_hi == tuple(float(v + pad) for v in first.max(0))

@@ -29,6 +29,7 @@ from pipeline.particles import read_particles
 from pipeline.particles.sequence import find_sequence
 from pipeline.sph import IMPORT_PADDING_RADII, NEIGHBOUR_PAIRS_LIMIT, WATER_DENSITY, neighbour_count
 from pipeline.timing import Timings
+from pipeline.vectors import bounds
 from pipeline.writer import BackgroundWriter
 
 log = logging.getLogger("deep_ssfr")
@@ -51,27 +52,31 @@ def import_sequence(folder: Path, name: str, files: list[Path], radius: float, f
     With ``stray``, the extra fields hold the sequence's ``sequence_bounds`` (``bounds``: lo, hi)
     taken from the files as they are read, so nothing reads the copies again for them."""
     folder = Path(folder)
-    timings, n_max, boxes = Timings(), 0, []
+    timings, n_max, boxes, first = Timings(), 0, [], None
     # a frame's copy is written while the next is read (a million particles: 94 -> 75 ms a frame)
     with BackgroundWriter() as writer:
         for i, f in enumerate(tqdm(files, desc=f"import {name}", unit="frame"), start=1):
             target = folder / frame_name(i)
-            if target.exists():  # copied by a run that was stopped: only its bounds are wanted
-                if stray is not None:
-                    boxes.append(frame_bounds(load_frame(target)[0], stray))
+            if target.exists():  # copied by a run that was stopped: only its boxes are wanted
+                if stray is not None or i == 1:
+                    positions = load_frame(target)[0]
+                    if stray is not None:
+                        boxes.append(frame_bounds(positions, stray))
+                    if i == 1:
+                        first = bounds(positions)
                 continue
             with timings("read"):
                 frame = read_particles(f, up=up)
             check_crowding(f, frame.positions, radius, support)
             if stray is not None:
                 boxes.append(frame_bounds(frame.positions, stray))
+            first = bounds(frame.positions) if i == 1 else first  # the domain, from the first frame
             writer.submit(save_frame, target, frame.positions, frame.velocities)
             n_max = max(n_max, len(frame.positions))
-    first = read_particles(files[0], up=up).positions
     pad = IMPORT_PADDING_RADII * radius
     write_sequence_info(folder, SequenceInfo(name, len(files), radius, WATER_DENSITY, fps,
-                                             tuple(float(v - pad) for v in first.min(0)),
-                                             tuple(float(v + pad) for v in first.max(0)), source))
+                                             tuple(float(v - pad) for v in first[0]),
+                                             tuple(float(v + pad) for v in first[1]), source))
     log.info("import %s: %d frames from %s", name, len(files), source)
     extra = {"files": [frame_name(i) for i in range(1, len(files) + 1)], "timings": timings.as_dict(),
              "particles_max": n_max}
