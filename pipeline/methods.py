@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,7 +24,6 @@ from pipeline.device import on_torch_stream
 from pipeline.ellipsoids import Ellipsoids
 from pipeline.exr import camera_attributes, stack, write_exr
 from pipeline.masks import REFINED_REACH_PX, NearestFluid, bounding_window, refined_mask
-from pipeline.metaball.inference import MetaballNet
 from pipeline.model.data import RELIEF_WINDOW_RADII, input_channels, prepare
 from pipeline.model.inference import Refiner, fluid_window
 from pipeline.model.scale import (
@@ -41,6 +41,9 @@ from pipeline.surface import anisotropic_kernels, kernel_densities, particle_ell
 from pipeline.timing import Timings
 from pipeline.vectors import as_float32, host, is_tensor, length, xp
 from pipeline.views import raytraced_target_channels, screen_space_inputs, target_channels
+
+if TYPE_CHECKING:  # the metaball network's module (and its scipy) loads only where that method runs
+    from pipeline.metaball.inference import MetaballNet
 
 ANISO_METHODS = ("aniso", "aniso_nrf")
 NAMES = {"gaussian": "Gaussian", "bilateral": "bilateral", "nrf": "narrow-range", "aniso": "ellipsoids",

@@ -114,7 +114,7 @@ def main(opts: StageOptions, req: Request) -> None:
         log.warning("render %s: the radius %.4g does not fit the sequence's extent %.4g; check --radius and the "
                     "units", name, radius, float((hi - lo).max()))
     cams, camera_key = sequence_cameras(req.camera, list(seq.numbers), lo - radius, hi + radius, p.width, p.height)
-    refiner, metaball, weights = networks(run, {p.method, *COMPARED})
+    refiner, metaball, weights = networks(run, {p.method, *(COMPARED if p.comparison else ())})
     entry = render_entry(run, name, camera_key, sim.key, weights, MODULE)
     if not entry.path(cache.MANIFEST).exists():  # work to do: estimate it (begin checks the outputs)
         size = "--size" if req.size or req.camera in ("auto", "orbit") else f"--size (here {req.camera}'s)"
