@@ -336,3 +336,25 @@ def test_bfloat16_refiner_stays_within_rounding_of_float32():
     assert np.median(angle) < 0.3 and angle.mean() < 0.6, (np.median(angle), angle.mean())
     assert angle.max() > 0, "bfloat16 must actually round"
     np.testing.assert_array_equal(z16[both], z32[both])
+
+
+def test_the_coarse_upsampling_is_the_upsampled_convolution():
+    """``NearestUpConv`` computes nearest 2x upsampling, a 3x3 convolution and its activation from
+    the coarse image: the same numbers to float rounding for any weights and size, borders
+    included, and the refiner's decoder has no upsampling left."""
+    from torch import nn
+
+    from pipeline.model.inference import NearestUpConv
+
+    torch.manual_seed(3)
+    conv, act = nn.Conv2d(6, 5, 3, 1, 1), nn.LeakyReLU(0.2)
+    x = torch.randn(2, 6, 7, 10)
+    want = act(conv(nn.functional.interpolate(x, scale_factor=2, mode="nearest")))
+    with torch.no_grad():
+        for layout in (torch.contiguous_format, torch.channels_last):
+            got = NearestUpConv(conv, act)(x.contiguous(memory_format=layout))
+            assert got.shape == want.shape and got.is_contiguous(memory_format=layout)
+            torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+    refiner = Refiner(_trained_looking_generator())
+    assert not any(isinstance(m, nn.Upsample) for m in refiner.net.modules())
+    assert sum(isinstance(m, NearestUpConv) for m in refiner.net.modules()) == 2
