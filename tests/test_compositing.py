@@ -530,7 +530,8 @@ def test_frames_are_read_ahead_and_a_damaged_one_fails_in_its_turn(tmp_path):
 
     def load(frame: int):
         read.append(frame)
-        second_read.set() if frame == 2 else None
+        if frame == 2:
+            second_read.set()
         if frame in broken:
             raise CacheError(f"corrupt cache file {frame_name(frame)}")
         return _blob((0.5, 0.3 + 0.01 * frame, 0.5)), None
