@@ -11,6 +11,7 @@ writes from several processes and nodes stay safe is :mod:`pipeline.fencing`'s c
 from __future__ import annotations
 
 import ast
+import contextlib
 import errno
 import functools
 import hashlib
@@ -114,14 +115,9 @@ def _write_imports_cache(known: dict[str, list[str]]) -> None:
     folder cannot be written."""
     if not IMPORTS_CACHE.is_absolute():
         return
-    keep = dict(list(known.items())[-IMPORTS_CACHE_SIZE:])
-    tmp = IMPORTS_CACHE.with_name(f".{IMPORTS_CACHE.name}{TMP_MARK}{os.getpid()}")
-    try:
-        IMPORTS_CACHE.parent.mkdir(parents=True, exist_ok=True)
+    keep = dict(list(known.items())[-IMPORTS_CACHE_SIZE:])  # in insertion order: not write_json_atomic's sorted keys
+    with contextlib.suppress(OSError), atomic_path(IMPORTS_CACHE) as tmp:
         tmp.write_text(json.dumps(keep))
-        os.replace(tmp, IMPORTS_CACHE)
-    except OSError:
-        tmp.unlink(missing_ok=True)
 
 
 def module_file(name: str) -> Path | None:
